@@ -39,6 +39,7 @@ __all__ = [
     "check_choice",
     "check_name",
     "check_seconds",
+    "check_strs",
     "is_loopback",
     "managers",
     "tree_names",
@@ -70,6 +71,13 @@ def check_name(field: str, value: object, what: str = "a name") -> str:
             f"starting with '.' or '-', at most {NAME_MAX} characters"
         )
     return value
+
+
+def check_strs(**names: object) -> None:
+    """`ConfigError` naming the first argument that is not a str (a name the other end judges)."""
+    for field, value in names.items():
+        if not isinstance(value, str):
+            raise ConfigError(f"{field} must be a name (a str), got {value!r}")
 
 
 Durability = Literal["process", "power"]

@@ -3,6 +3,7 @@ the one walk over a spec tree (`config.walk`) and what is read through it."""
 
 from __future__ import annotations
 
+import functools
 import uuid
 from pathlib import Path
 from typing import Any
@@ -15,6 +16,7 @@ from rr_actors.config import (
     Backoff,
     ManagerSpec,
     Steps,
+    check_strs,
     is_loopback,
     managers,
     tree_names,
@@ -188,6 +190,18 @@ class TestNames:
             assert {"device": 0} == app.call(manager, "camera", {"device": 0}).response
             with pytest.raises(rr.ConfigError, match=r"^name 'n{65}' is 65 characters long"):
                 sup.registrar(TOO_LONG)
+
+    def test_a_call_s_target_that_is_not_a_str_is_refused_naming_the_field(self, uid: str) -> None:
+        """The other end's names (`target_rr`, `server`) are checked only to be strs, where a
+        call starts and where `call_with_retry` does (`check_strs`): their form is theirs."""
+        check_strs(target_rr="api", server="cam.v1/x")
+        with pytest.raises(rr.ConfigError, match=r"^server must be a name \(a str\), got 7$"):
+            check_strs(target_rr="api", server=7)
+        with rr.Supervisor([rr.ManagerSpec(f"api-{uid}", noop)]) as sup:
+            app = sup.registrar(f"app-{uid}")
+            for call in (app.call, functools.partial(sup.call_with_retry, app)):
+                with pytest.raises(rr.ConfigError, match=r"^target_rr must be a name"):
+                    call(b"api", "camera", {})
 
 
 @pytest.mark.parametrize(

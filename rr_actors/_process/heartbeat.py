@@ -43,10 +43,11 @@ PINGS_PER_SECOND = 500.0
 
 class Pace:
     """Spreads a process's heartbeats' pings `1 / rate` seconds apart at least (the watcher's
-    `slot`s); when their periods ask for more, its first `slot` says what each gets."""
+    `slot`s); past the rate a `slot` says what each gets, again once the beats doubled since
+    (`warned`: their count then), each pinged half as often as said (not at every join)."""
 
     def __init__(self, rate: float) -> None:
-        self.rate, self.beats, self.asked, self.warned = rate, 0, 0.0, False
+        self.rate, self.beats, self.asked, self.warned = rate, 0, 0.0, 0
         self._next = 0.0  # (monotonic) the earliest the next ping may go
         self._lock = runtime.Lock()
 
@@ -54,18 +55,22 @@ class Pace:
         with self._lock:  # (any thread; once none beats, it may warn again)
             self.beats += change
             self.asked = self.asked + change / period if self.beats else 0.0
-            self.warned = self.warned and self.beats > 0
+            if not self.beats:
+                self.warned = 0
 
     def slot(self, now: float) -> float:
         """When a ping due at `now` goes (the watcher's thread alone; it is taken)."""
-        if self.asked > self.rate and not self.warned:
-            self.warned, every = True, self.beats / self.rate
-            logger.warning(
-                "%d managers' heartbeats ask for %.0f pings a second, more than the %g this "
-                "process writes: each is pinged every %.2f s instead, and a hang is found "
-                "within that and its heartbeat_timeout (a heartbeat of %.2f s or more says so)",
-                *(self.beats, self.asked, self.rate, every, every),
-            )
+        if self.asked > self.rate and self.beats >= 2 * self.warned:
+            with self._lock:  # (a join may race it: checked again, and set, under its lock)
+                if self.asked > self.rate and self.beats >= 2 * self.warned:
+                    self.warned, every = self.beats, self.beats / self.rate
+                    logger.warning(
+                        "%d managers' heartbeats ask for %.0f pings a second, more than the %g "
+                        "this process writes: each is pinged every %.2f s instead, and a hang is "
+                        "found within that and its heartbeat_timeout (a heartbeat of %.2f s or "
+                        "more says so)",
+                        *(self.beats, self.asked, self.rate, every, every),
+                    )
         at = self._next = max(now, self._next)
         self._next += 1.0 / self.rate
         return at
@@ -93,13 +98,9 @@ class Hang:
         if self.stopped:
             return text + " (stopped: SIGSTOP or a debugger)"
         if self.starved and self.busy > (self.waited or 0.0):
-            return (
-                text
-                + f", its registrar busy with other messages for {self.busy:.3f} s of it"
-                + limit
-            )
-        if self.waited:
-            return text + f", {self.waited:.3f} s of it waiting for a CPU" + limit
+            text += f", its registrar busy with other messages for {self.busy:.3f} s of it"
+        elif self.waited:
+            text += f", {self.waited:.3f} s of it waiting for a CPU"
         return text + limit
 
 
@@ -303,9 +304,7 @@ class Heartbeat:
             "manager %s has not answered its heartbeat for %.3f s, but it could run for "
             "only %.3f s of that %s: not hung; it is killed if that reaches %g s, or the "
             "silence %g s",
-            self.name,
-            silent,
-            counted,
+            *(self.name, silent, counted),
             f"without handling a message (its registrar was busy with other messages, "
             f"{silence.queued} queued: the manager is overloaded)"
             if busy

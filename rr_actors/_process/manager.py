@@ -354,10 +354,11 @@ class ManagerProcess:
     ) -> ManagerExit:
         """Ask the manager to stop its registrar and exit; kill it after `timeout` seconds
         (`restarting`: its peers see it unavailable for now, not stopped for good;
-        `wait_exit=False`: once it reports its registrar stopped cleanly, its exit to `reap`)."""
+        `wait_exit=False`: once it reports its registrar stopped cleanly, its exit to `reap`).
+        Its registrar's stop has a fifth of that, 1 s at most, less: left to report and exit."""
         self._stopping = True
         self._exit_by = runtime.monotonic() + timeout
-        self._send(Stop(timeout, restarting))
+        self._send(Stop(timeout - min(timeout / 5, 1.0), restarting))
         if (self.exited if wait_exit else self.reported).wait(timeout):
             ended = self.exit if self.exited.is_set() else self._reported
             # not clean: it is told lost (rule 19) once it exited, when it can answer no one
@@ -544,6 +545,8 @@ class ManagerProcess:
         self.reported.set()
         for waiting in list(self._syncs.values()):  # nothing more will come
             waiting.set()
+        if self._beat is not None:  # (leaves the pace before a restart's next life joins)
+            self._beat.close()
         try:
             self._on_exit(result)
         except Exception:
@@ -553,8 +556,6 @@ class ManagerProcess:
             release(self.process)
             if self._exit_watch is not None:
                 self._exit_watch.close()
-            if self._beat is not None:
-                self._beat.close()
 
 
 _HANDLERS: dict[type[Any], Callable[[ManagerProcess, Any, float], tuple[float, str] | None]] = {

@@ -82,7 +82,7 @@ from rr_actors._types import (
     StatusUpdate,
     UnloadCallback,
 )
-from rr_actors.config import RegistrarConfig, check_seconds
+from rr_actors.config import RegistrarConfig, check_choice, check_seconds, check_strs
 from rr_actors.errors import CallTimeoutError, ConfigError, RegistrarStoppedError
 
 T = TypeVar("T")
@@ -682,10 +682,9 @@ class Here:
     ) -> Steps[Query]:
         if on_status is not None and not callable(on_status):
             raise ConfigError(f"on_status must be callable, got {on_status!r}")
-        if if_overloaded not in ("wait", "raise"):
-            raise ConfigError(f"if_overloaded must be 'wait' or 'raise', got {if_overloaded!r}")
+        check_choice("if_overloaded", if_overloaded, ("wait", "raise"))
         if not (isinstance(target_rr, str) and isinstance(server, str)):
-            _check_names(target_rr=target_rr, server=server)
+            check_strs(target_rr=target_rr, server=server)
         if query_id is not None and not (isinstance(query_id, str) and query_id):
             raise ConfigError(
                 f"query_id must be a non-empty str (or None: a fresh id), got {query_id!r}"
@@ -766,7 +765,7 @@ class Here:
     def fetch_queries(
         self, timeout: float | None, target_rr: str, server: str
     ) -> Steps[list[Query]]:
-        _check_names(target_rr=target_rr, server=server)
+        check_strs(target_rr=target_rr, server=server)
         limit = self.limit(timeout)
         deadline = runtime.monotonic() + limit
         # The provider reads its catalog after this stamp; taken only for a subscriber (it
@@ -1138,10 +1137,3 @@ def _trace_context() -> tuple[str, str] | None:
     """The trace context a call made now carries (`traces.begin`): none until the
     application imported OpenTelemetry, as no span can be current before (one look-up)."""
     return traces.begin() if traces.API in sys.modules else None
-
-
-def _check_names(**names: object) -> None:
-    """`ConfigError` naming the first argument that is not a str."""
-    for field, value in names.items():
-        if not isinstance(value, str):
-            raise ConfigError(f"{field} must be a name (a str), got {value!r}")

@@ -28,10 +28,10 @@ from typing import Any, Protocol
 from rr_actors._core import runtime
 from rr_actors._core.replies import Steps
 from rr_actors._registrar import Registrar
-from rr_actors._registrar.handle import Here, _check_names, call_steps
+from rr_actors._registrar.handle import Here, call_steps
 from rr_actors._supervision.children import ChildInfo
 from rr_actors._types import Query, StatusCallback
-from rr_actors.config import check_seconds
+from rr_actors.config import check_seconds, check_strs
 from rr_actors.errors import (
     CallTimeoutError,
     ConfigError,
@@ -164,7 +164,7 @@ def _check(
         raise ConfigError(
             "call_with_retry(consumer, target_rr, server, request): request is missing"
         )
-    _check_names(target_rr=target_rr, server=server)
+    check_strs(target_rr=target_rr, server=server)
     check_seconds("timeout", timeout, allow_none=True)
     if query_id is not None and not (isinstance(query_id, str) and query_id):
         raise ConfigError(

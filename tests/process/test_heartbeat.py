@@ -674,6 +674,65 @@ def test_pings_within_the_pace_keep_their_period_and_those_beyond_it_share_the_r
     ] == [r.getMessage().split(", and", 1)[0] for r in beyond_warned.records]
 
 
+def test_a_join_racing_the_first_warning_does_not_make_it_warn_twice() -> None:
+    """A manager joins the pace (another thread) as its watcher's slot warns first: one
+    warning. (The join read `warned` before the slot set it and wrote it back after: the
+    next slot warned again.) Forced: a join that reads `warned` is held there until a slot
+    ran, the value it read kept."""
+    reading, slotted, joiner = threading.Event(), threading.Event(), threading.Thread()
+
+    class Held(Pace):
+        @property
+        def warned(self) -> int:
+            value = self.__dict__["held_warned"]
+            if threading.current_thread() is joiner and not slotted.is_set():
+                reading.set()
+                slotted.wait(10.0)
+            return value  # type: ignore[no-any-return]
+
+        @warned.setter
+        def warned(self, value: int) -> None:
+            self.__dict__["held_warned"] = value
+
+    pace = Held(10.0)
+    pace.join(0.01)  # 100 pings a second asked, 10 go
+    joiner = threading.Thread(target=lambda: (pace.join(0.01), reading.set()))
+    with heard("heartbeats ask for") as warned:
+        joiner.start()
+        assert reading.wait(10.0)  # (held where it read `warned`, or joined)
+        pace.slot(0.0)
+        slotted.set()
+        joiner.join(10.0)
+        pace.slot(1.0)
+        pace.slot(2.0)
+
+    assert ["2 managers' heartbeats ask for 200 pings"] == [
+        r.getMessage()[:40] for r in warned.records
+    ]
+
+
+def test_the_pace_warns_again_once_the_beats_doubled_since_its_last_warning() -> None:
+    """Each warning says how often each manager is pinged; once the beats doubled that is
+    half as often (a hang found twice as late), so it is said again: at 2, 4, 8 managers
+    paced here, not at each join between (a growing tree's log). Once none beats, the
+    next tree past the rate is told again."""
+    pace = Pace(10.0)
+    said: list[int] = []
+    with heard("heartbeats ask for") as warned:
+        for joined in range(1, 14):
+            pace.join(0.1)  # 10 pings a second each: past the rate from 2 managers
+            pace.slot(float(joined))
+            said.extend(int(r.getMessage().split()[0]) for r in warned.records[len(said) :])
+        for _ in range(13):
+            pace.join(0.1, -1)
+        pace.join(0.1)
+        pace.join(0.1)
+        pace.slot(20.0)
+        said.extend(int(r.getMessage().split()[0]) for r in warned.records[len(said) :])
+
+    assert [2, 4, 8, 2] == said
+
+
 def record_pings(monkeypatch: pytest.MonkeyPatch, want: int) -> tuple[list[Any], threading.Event]:
     """The `Ping`s the watcher writes from now on (whose, when), and an event set at the
     `want`th."""
@@ -703,7 +762,7 @@ def test_many_managers_are_pinged_at_their_period_or_at_the_pace_said_once(
 ) -> None:
     count, rounds = 16, 10
     monkeypatch.setattr(PACE, "rate", rate)
-    monkeypatch.setattr(PACE, "warned", False)
+    monkeypatch.setattr(PACE, "warned", 0)
     pings, enough = record_pings(monkeypatch, count * (rounds + 1))
     names = [f"m{i}-{uid}" for i in range(count)]
     with heard("heartbeats ask for") as warned:

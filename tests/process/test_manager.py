@@ -34,11 +34,14 @@ import pytest
 import rr_actors as rr
 import rr_actors_lab.observe as _lab_observe
 from rr_actors import testing
+from rr_actors._process import manager
 from rr_actors._process.control import Events, Failed, forker_pid, mp_context, start_forkserver
+from rr_actors._process.heartbeat import PINGS_PER_SECOND, Pace
 from rr_actors._process.manager import ManagerExit, ManagerProcess, _await_ready
 from rr_actors._process.spare import Spare
 from rr_actors._process.tally import Received
 from rr_actors.testing import RemoteRegistrar, SharedObjects
+from tests.support.heard import events_of
 from tests.support.supervising import (
     ManualTimer,
     alive,
@@ -106,6 +109,42 @@ def test_a_sigkilled_manager_process_is_restarted_with_a_new_pid_and_serves(
 
     assert ("killed by SIGKILL", True) == (info.last_exit, info.pid not in (None, old))
     assert "hi" == app.call(name, "echo", "hi", timeout=10.0).response
+
+
+def test_a_restarted_manager_leaves_the_heartbeats_pace_before_its_next_life_joins(
+    supervisors: Callable[..., rr.Supervisor], uid: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A manager's heartbeat leaves its process's pace (`heartbeat.Pace`) once its exit is
+    seen, before its supervisor restarts it: the pace counts the managers beating. (It left
+    after its exit's thread reaped the process, up to 5 s after its next life joined: one
+    manager counted twice, in whether the pace warned and in what it said.) Forced: that
+    thread is held at its reap until the next life joined."""
+    name, pace = f"erm-{uid}", Pace(PINGS_PER_SECOND)
+    counts: list[int] = []
+    rejoined, three = threading.Event(), threading.Event()
+    join, release = Pace.join, manager.release
+
+    def counted(self: Pace, period: float, change: int = 1) -> None:
+        join(self, period, change)
+        if self is pace:
+            counts.append(self.beats)
+            if counts[1:] and change > 0:
+                rejoined.set()
+            if len(counts) >= 3:
+                three.set()
+
+    def held(process: Any) -> None:  # (the exit's thread, after its supervisor was told)
+        rejoined.wait(10.0)
+        release(process)
+
+    monkeypatch.setattr(manager, "PACE", pace)
+    monkeypatch.setattr(Pace, "join", counted)
+    monkeypatch.setattr(manager, "release", held)
+    sup = supervisors([process(name, heartbeat=0.5)]).start()
+    kill_and_wait_restarted(sup, name)
+
+    assert three.wait(15.0), counts
+    assert [1, 0, 1] == counts[:3]
 
 
 def test_a_restarted_manager_restores_its_catalog_before_it_serves(
@@ -776,13 +815,7 @@ def test_call_with_retry_of_a_consumer_in_another_manager_process_publishes_its_
     sup = supervisors(
         [process(p), process(c)], backoff=rr.Backoff(initial=1.0), timer=timer
     ).start()
-    withdrawn: list[rr.events.CallWithdrawn] = []
-    seen = threading.Event()
-
-    def on_event(event: rr.events.Event) -> None:
-        if isinstance(event, rr.events.CallWithdrawn):
-            withdrawn.append(event)
-            seen.set()
+    withdrawn, seen, on_event = events_of(rr.events.CallWithdrawn)
 
     with sup.subscribe(on_event):
         sigkill(sup, p)

@@ -1713,6 +1713,24 @@ def overload_events(provider: Any, monkeypatch: pytest.MonkeyPatch) -> tuple[_Ov
     return _Overloads(provider), clock
 
 
+def _shared_leaf(make_registrar: Any, gates: Any, shared: Any) -> tuple[Any, ...]:
+    """`provider` (8 workers, `max_pending` 4) serving "leaf" to `greedy` and `other`: the
+    `target`; `started`, the requests whose loads started; three gates: `first` holds
+    greedy's requests `("greedy", n)` of n < 2, `rest` its others, `theirs` `other`'s."""
+    provider = make_registrar("provider", max_workers=8, max_pending=4)
+    greedy, other = make_registrar("greedy"), make_registrar("other")
+    first, rest, theirs, started = gates(), gates(), gates(), shared.list()
+
+    def load(request: Any) -> Any:
+        started.append(request)
+        who, n = request
+        assert (theirs if who == "other" else first if n < 2 else rest).wait(60)
+        return request
+
+    provider.register_server("leaf", load=load, unload=lambda r, s: None)
+    return provider, greedy, other, (provider.name, "leaf"), started, (first, rest, theirs)
+
+
 class TestOverload:
     """Issue 53: a load nobody waits for any more is shed before it runs (rule 17: its
     id given back, nothing left behind), and an unload never waits behind queued loads."""
@@ -2054,7 +2072,7 @@ class TestOverload:
 
     def test_if_overloaded_is_wait_or_raise(self, make_registrar):
         consumer = make_registrar("consumer")
-        with pytest.raises(rr.ConfigError, match="if_overloaded must be 'wait' or 'raise'"):
+        with pytest.raises(rr.ConfigError, match="if_overloaded must be one of 'wait', 'raise'"):
             consumer.call("elsewhere", "leaf", "x", timeout=1, if_overloaded="drop")
 
     @pytest.mark.thread_only("awaits acall in this process")
@@ -2090,18 +2108,9 @@ class TestOverload:
         it takes no more than its share (the bound divided among the consumers that want
         loads there): the slots its loads free go to the other consumer, whose call is
         served within its timeout however hard the first one floods."""
-        provider = make_registrar("provider", max_workers=8, max_pending=4)
-        greedy, other = make_registrar("greedy"), make_registrar("other")
-        first, rest, theirs, started = gates(), gates(), gates(), shared.list()
-
-        def load(request: Any) -> Any:
-            started.append(request)
-            who, n = request
-            assert (theirs if who == "other" else first if n < 2 else rest).wait(60)
-            return request
-
-        provider.register_server("leaf", load=load, unload=lambda r, s: None)
-        target = (provider.name, "leaf")
+        provider, greedy, other, target, started, (first, rest, theirs) = _shared_leaf(
+            make_registrar, gates, shared
+        )
         flooding, refused, admitted = threading.Event(), [], []
 
         def flood(k: int) -> None:  # asks again at once, as long as the test lets it
@@ -2149,22 +2158,13 @@ class TestOverload:
         """Issue 68 items 7-8: a consumer held to its share while the server has room is
         told in one `ShareRefused` (what `share-needed` judges); refusals at the bound are
         `ServerOverloaded`'s, not it."""
-        provider = make_registrar("provider", max_workers=8, max_pending=4)
-        greedy, other = make_registrar("greedy"), make_registrar("other")
-        first, rest, theirs, started = gates(), gates(), gates(), shared.list()
+        provider, greedy, other, target, started, (first, rest, theirs) = _shared_leaf(
+            make_registrar, gates, shared
+        )
         told: list[rr.events.ShareRefused] = []
         subscription = provider.subscribe(
             lambda e: told.append(e) if isinstance(e, rr.events.ShareRefused) else None
         )
-
-        def load(request: Any) -> Any:
-            started.append(request)
-            who, n = request
-            assert (theirs if who == "other" else first if n < 2 else rest).wait(60)
-            return request
-
-        provider.register_server("leaf", load=load, unload=lambda r, s: None)
-        target = (provider.name, "leaf")
         with ThreadPoolExecutor(5) as pool:
             held = [pool.submit(greedy.call, *target, ("greedy", n), timeout=60) for n in range(4)]
             assert wait_for(lambda: 4 == len(started), timeout=20)  # alone: the whole bound

@@ -12,6 +12,7 @@ from typing import Any
 import pytest
 
 import rr_actors as rr
+from tests.support.heard import events_of
 from tests.support.supervising import ManualTimer, crash, process, sigkill
 
 pytestmark = pytest.mark.usefixtures("by_value")
@@ -201,13 +202,7 @@ def test_an_awaited_retry_cancelled_while_its_provider_restarts_publishes_its_wi
     name = f"p-{uid}"
     timer = ManualTimer()
     sup = rr.Supervisor([rr.ManagerSpec(name)], backoff=rr.Backoff(initial=1.0), timer=timer)
-    withdrawn: list[rr.events.CallWithdrawn] = []
-    seen = threading.Event()
-
-    def on_event(event: rr.events.Event) -> None:
-        if isinstance(event, rr.events.CallWithdrawn):
-            withdrawn.append(event)
-            seen.set()
+    withdrawn, seen, on_event = events_of(rr.events.CallWithdrawn)
 
     async def main(app: rr.ResourceRegistrar) -> None:
         waiting = _counting_restart_waits(sup, monkeypatch, 1)

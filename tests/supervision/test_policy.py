@@ -1203,6 +1203,37 @@ def gives_up(sup: rr.Supervisor, name: str) -> None:
         sup.wait_restarted(name, timeout=30.0)
 
 
+def _stopped_beside_edge(
+    helpers: SharedObjects,
+    uid: str,
+    setup: Callable[[rr.ResourceRegistrar], None],
+    *,
+    shutdown: float,
+) -> tuple[str | None, list[str]]:
+    """A tree of `sink-{uid}` (its unload hangs) and `api-{uid}` (set up by `setup`, its
+    supervisor's bound `shutdown` seconds), stopped while `edge-{uid}`, a registrar of the
+    tree's carrier in a process of its own, holds an id at `api`: `api`'s last exit, and the
+    status updates `edge` heard of that id (within 30 s of the stop; edge left running)."""
+    provider, heard = f"api-{uid}", helpers.list()
+
+    def on_status(query: rr.Query, update: rr.StatusUpdate) -> None:
+        heard.append(f"{update.status.name} {update.source}")
+
+    system = System.create()
+    specs = [process(f"sink-{uid}", _hanging_unload), process(provider, setup, shutdown=shutdown)]
+    sup = rr.Supervisor(specs, network=system)
+    sup.start()
+    edge = RemoteRegistrar.start(rr.RegistrarConfig(f"edge-{uid}"), system)
+    try:
+        edge.call(provider, "echo", "x", on_status=on_status, timeout=30.0)
+        sup.stop()
+        assert wait_for(lambda: len(heard) > 0, 30.0), "edge never heard its provider lost"
+        return sup.child(provider).last_exit, list(heard)
+    finally:
+        edge.stop(timeout=30.0)
+        system.close()
+
+
 class TestAWholeTreesStop:
     """A whole tree's stop tells each manager of the managers stopped before it once, just
     before its own stop (a process on its control pipe; issue 69, goal 3): not, at each
@@ -1491,6 +1522,22 @@ class TestAWholeTreesStop:
 
         assert [(0, 0, True), (0, 0, True)] == seen  # before: 3-4, 16 notices; 2-3, 10 connections
 
+    def test_a_manager_whose_registrar_gives_up_its_stop_exits_within_its_bound_unkilled(
+        self, uid: str
+    ) -> None:
+        """`api`'s registrar gives up its stop (its release at `sink` hangs) and its process
+        exits, within its supervisor's bound (`shutdown`, 2.5 s): its exit is its own. (Its
+        registrar's stop had that whole bound: it gave up at the bound, which left no time
+        to report and exit; it was killed, "no clean stop", or reaped at once, "did not
+        exit".) Its registrar's stop now ends a margin inside the bound (a fifth)."""
+        sink, provider = f"sink-{uid}", f"api-{uid}"
+        specs = [process(sink, _hanging_unload, shutdown=0.5)]
+        sup = rr.Supervisor([*specs, process(provider, _holding_at(sink), shutdown=2.5)])
+        sup.start()
+        sup.stop()
+
+        assert "exit code 1" == sup.child(provider).last_exit  # it gave up: not killed
+
     def test_a_consumer_left_running_hears_at_once_a_provider_killed_in_a_trees_stop(
         self, process_helpers: SharedObjects, uid: str
     ) -> None:
@@ -1498,26 +1545,11 @@ class TestAWholeTreesStop:
         of the tree's carrier in a process of its own, holds an id at `api`, killed at its
         stop's bound (its release at `sink` hangs); `edge` left running hears `api` lost
         at once: `FATAL` to that id."""
-        sink, provider = f"sink-{uid}", f"api-{uid}"
-        heard = process_helpers.list()
-
-        def on_status(query: rr.Query, update: rr.StatusUpdate) -> None:
-            heard.append(f"{update.status.name} {update.source}")
-
-        system = System.create()
-        specs = [process(sink, _hanging_unload), process(provider, _holding_at(sink), shutdown=0.5)]
-        sup = rr.Supervisor(specs, network=system)
-        sup.start()
-        edge = RemoteRegistrar.start(rr.RegistrarConfig(f"edge-{uid}"), system)
-        try:
-            edge.call(provider, "echo", "x", on_status=on_status, timeout=30.0)
-            sup.stop()
-            assert "shutdown" != sup.child(provider).last_exit  # killed, or it gave up its stop
-            assert wait_for(lambda: len(heard) > 0, 30.0), "edge never heard its provider lost"
-            assert [f"FATAL {provider}/echo"] == list(heard)
-        finally:
-            edge.stop(timeout=30.0)
-            system.close()
+        last_exit, heard = _stopped_beside_edge(
+            process_helpers, uid, _holding_at(f"sink-{uid}"), shutdown=0.5
+        )
+        assert "shutdown" != last_exit  # killed, or it gave up its stop
+        assert [f"FATAL api-{uid}/echo"] == heard
 
     def test_a_consumer_left_running_hears_at_once_a_provider_that_gave_up_its_stop(
         self, monkeypatch: pytest.MonkeyPatch, process_helpers: SharedObjects, uid: str
@@ -1532,11 +1564,8 @@ class TestAWholeTreesStop:
         from rr_actors._registrar import life  # noqa: PLC0415
 
         sink, provider = f"sink-{uid}", f"api-{uid}"
-        heard, told = process_helpers.list(), process_helpers.event()
+        told = process_helpers.event()
         gone_for_good = life.gone_for_good
-
-        def on_status(query: rr.Query, update: rr.StatusUpdate) -> None:
-            heard.append(f"{update.status.name} {update.source}")
 
         def counted_gone_for_good(name: str, **kwargs: Any) -> None:
             gone_for_good(name, **kwargs)
@@ -1560,20 +1589,9 @@ class TestAWholeTreesStop:
             registrar.stop = lambda *, timeout=None: stop(timeout=0.1)  # type: ignore[method-assign]
 
         monkeypatch.setattr(life, "gone_for_good", counted_gone_for_good)
-        system = System.create()
-        specs = [process(sink, _hanging_unload), process(provider, gives_up, shutdown=30.0)]
-        sup = rr.Supervisor(specs, network=system)
-        sup.start()
-        edge = RemoteRegistrar.start(rr.RegistrarConfig(f"edge-{uid}"), system)
-        try:
-            edge.call(provider, "echo", "x", on_status=on_status, timeout=30.0)
-            sup.stop()
-            assert "exit code 1" == sup.child(provider).last_exit  # not killed: it gave up
-            assert wait_for(lambda: len(heard) > 0, 30.0), "edge never heard its provider lost"
-            assert [f"FATAL {provider}/echo"] == list(heard)
-        finally:
-            edge.stop(timeout=30.0)
-            system.close()
+        last_exit, heard = _stopped_beside_edge(process_helpers, uid, gives_up, shutdown=30.0)
+        assert "exit code 1" == last_exit  # not killed: it gave up
+        assert [f"FATAL {provider}/echo"] == heard
 
     def test_a_manager_that_gave_up_its_stop_and_does_not_exit_is_killed_once_for_that_reason(
         self, uid: str

@@ -23,6 +23,7 @@ import rr_actors_lab.observe as _lab_observe
 from rr_actors import Supervisor, testing
 from rr_actors.config import Backoff, ManagerSpec, SupervisorSpec
 from tests.supervision.conftest import CallWithRetry
+from tests.support.heard import events_of
 from tests.support.supervising import (
     FakeClock,
     ManualTimer,
@@ -699,14 +700,7 @@ def test_call_with_retry_that_times_out_while_restarting_raises_call_timeout(
     app = sup.registrar(f"app-{uid}")
     crash(sup, name)
     assert timer.wait_scheduled(1)
-    withdrawn: list[rr.events.CallWithdrawn] = []
-    seen = threading.Event()
-
-    def on_event(event: rr.events.Event) -> None:
-        if isinstance(event, rr.events.CallWithdrawn):
-            withdrawn.append(event)
-            seen.set()
-
+    withdrawn, seen, on_event = events_of(rr.events.CallWithdrawn)
     with app.subscribe(on_event):
         with pytest.raises(rr.CallTimeoutError):
             call_with_retry(sup, app, name, "res", "camera", timeout=0.2, query_id="q-1")
@@ -714,21 +708,6 @@ def test_call_with_retry_that_times_out_while_restarting_raises_call_timeout(
 
     assert [("q-1", name, "timeout")] == [(e.query_id, e.serving_rr, e.reason) for e in withdrawn]
     assert withdrawn[0].at - withdrawn[0].started >= 0.2 - 0.05  # (wall clock stamps)
-
-
-def withdrawals(registrar: rr.ResourceRegistrar) -> tuple[list[Any], threading.Event]:
-    """The `CallWithdrawn` events `registrar` publishes from now on, and an event set at
-    the first (closed with the registrar)."""
-    withdrawn: list[rr.events.CallWithdrawn] = []
-    seen = threading.Event()
-
-    def on_event(event: rr.events.Event) -> None:
-        if isinstance(event, rr.events.CallWithdrawn):
-            withdrawn.append(event)
-            seen.set()
-
-    registrar.subscribe(on_event)
-    return withdrawn, seen
 
 
 def test_call_with_retry_whose_wait_for_the_restart_fails_withdraws_its_call(
@@ -745,7 +724,8 @@ def test_call_with_retry_whose_wait_for_the_restart_fails_withdraws_its_call(
     sup = supervisors([ManagerSpec(name)], backoff=Backoff(initial=1.0), timer=timer).start()
     app = rr.ResourceRegistrar.start(f"app-{uid}")  # (not the tree's: it outlives its stop)
     try:
-        withdrawn, seen = withdrawals(app)
+        withdrawn, seen, on_event = events_of(rr.events.CallWithdrawn)
+        app.subscribe(on_event)  # (closed with the registrar)
         crash(sup, name)
         assert timer.wait_scheduled(1)  # (the restart is held: the provider stays restarting)
         outcome: list[BaseException] = []
@@ -784,7 +764,8 @@ def test_call_with_retry_withdrawn_while_restarting_carries_its_callers_trace(
     timer = ManualTimer()
     sup = supervisors([ManagerSpec(name)], backoff=Backoff(initial=1.0), timer=timer).start()
     app = sup.registrar(f"app-{uid}")
-    withdrawn, seen = withdrawals(app)
+    withdrawn, seen, on_event = events_of(rr.events.CallWithdrawn)
+    app.subscribe(on_event)  # (closed with the registrar)
     crash(sup, name)
     assert timer.wait_scheduled(1)
     trace_id, span_id = 0x5EED_0000_0000_0000_0000_0000_0000_0068, 0xCA11_E500_0000_0001

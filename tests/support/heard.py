@@ -4,9 +4,25 @@ from __future__ import annotations
 
 import threading
 from collections.abc import Callable
-from typing import Any
+from typing import Any, TypeVar
 
 from rr_actors import events
+
+E = TypeVar("E", bound=events.Event)
+
+
+def events_of(kind: type[E]) -> tuple[list[E], threading.Event, Callable[[events.Event], None]]:
+    """The events of `kind` a subscription delivers, in order; an event set at the first;
+    and the callback to subscribe (it may be called on any thread)."""
+    heard: list[E] = []
+    seen = threading.Event()
+
+    def on_event(event: events.Event) -> None:
+        if isinstance(event, kind):
+            heard.append(event)
+            seen.set()
+
+    return heard, seen, on_event
 
 
 class Heard:
