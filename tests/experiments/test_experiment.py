@@ -16,6 +16,7 @@ import signal
 import subprocess
 import sys
 import threading
+import time
 import types
 import urllib.request
 from collections.abc import Callable
@@ -38,10 +39,15 @@ from rr_actors_lab.experiments import (
     run,
     runner,
 )
+from rr_actors_lab.experiments._agenda import Agenda, FaultLog
 from rr_actors_lab.experiments._child import STOPPED_EXIT
 from rr_actors_lab.experiments._instrument import CUT_SIGNAL
+from rr_actors_lab.experiments._manager_faults import ManagerFaults
 from rr_actors_lab.experiments._procs import processes_with, wait_gone
+from rr_actors_lab.experiments._trigger import Trigger
 from rr_actors_lab.experiments.runner import build_tree, wait_all_serving
+from rr_actors_lab.experiments.schedule import ScheduledFault
+from rr_actors_lab.mission.managers import PROGRAM_SERVER, program_request
 
 SERVICE = "rr_actors_lab.experiments.services:service"
 
@@ -381,6 +387,75 @@ def test_a_fatal_about_a_resource_not_yet_released_is_recovered_though_its_hold_
     assert kill.recovery_s is not None, kill
     assert 0 == result.unrecovered
     assert 0 == result.leaked_processes
+
+
+ERM_ONLY = """\
+duration = 2.0
+
+[tree]
+[[tree.children]]
+name = "erm"
+setup = "rr_actors_lab.mission.managers:erm_setup"
+"""
+
+
+class _ReplacedFirst(Trigger):
+    """A trigger that, handed its first signal, first runs `race` (which replaces the process
+    the injector just read), as the workload can in the PREPARE_AHEAD before a kill."""
+
+    def __init__(self, race: Callable[[], None]) -> None:
+        super().__init__()
+        self._race: Callable[[], None] | None = race
+
+    def send(
+        self, due: float, signum: int, pidfd: int, on_sent: Callable[[float, int], None]
+    ) -> None:
+        race, self._race = self._race, None
+        if race is not None:
+            race()
+        super().send(due, signum, pidfd, on_sent)
+
+
+def test_a_resource_process_replaced_between_its_read_and_the_kill_is_not_what_is_killed(
+    tmp_path: Path,
+) -> None:
+    """The every-fault run's `kill_resource` was once skipped, "pid ... had just exited
+    (ESRCH)": the LiDAR it read was unloaded before the kill, and the next one loaded. Forced
+    here: the injector aims at the process that replaced it (`_manager_faults`)."""
+    plan = parse_plan(ERM_ONLY)
+    bus = str(tmp_path / "bus")
+
+    def lidar(name: str) -> dict[str, Any]:
+        return program_request("lidar", name, bus, watch_pid=os.getpid(), rate=5.0, seed=0)
+
+    sup = build_tree(plan, None)
+    with sup:
+        app = sup.registrar(rr.RegistrarConfig("app", call_timeout=20.0))
+        first = app.call("erm", PROGRAM_SERVER, lidar("lidar-a"))
+        replaced: list[rr.Query] = []
+
+        def replace() -> None:  # unload returns once the process has exited (reaped)
+            app.unload(first.id)
+            replaced.append(app.call("erm", PROGRAM_SERVER, lidar("lidar-b")))
+
+        trigger = _ReplacedFirst(replace)
+        log = FaultLog()
+        agenda = Agenda(lambda exc, left: None)
+        faults = ManagerFaults(sup, plan, time.monotonic(), agenda=agenda, log=log, trigger=trigger)
+        kill = ScheduledFault(fault=0, n=0, kind="kill_resource", target="erm", at=0.0, pick=0.0)
+        try:
+            faults.fire(kill, 0.0)
+        finally:
+            trigger.close(timeout=10)
+        (record,) = log.records
+        second = replaced[0].response
+
+        assert not record.skipped, record
+        assert (
+            f"SIGKILL pid {second['pid']} (a process of erm; pid {first.response['pid']} "
+            "had just exited)"
+        ) == record.detail
+        assert [] == wait_gone([second["pid"]], 10)
 
 
 def test_the_every_fault_runs_count_what_they_did(every_fault: tuple[Results, Path]) -> None:
