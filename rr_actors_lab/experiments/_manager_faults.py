@@ -9,6 +9,7 @@ their resource processes killed, their loads made to fail.
    cut_connections ► SIGUSR2 ┘  (the manager's handler       _sent: the reply recorded
                                  shuts its connections)
    hang_manager, after `for` ──► resume: SIGCONT (from here, through the kept pidfd)
+   kill_resource, its process exited first (ESRCH) ──► aim again, at one running now
    kill_manager of a thread manager ──► its registrar crashes (at the due time, here)
    load_error ──► a thread: Supervisor.run_in(manager, arm_load_error): its next loads raise
 ```
@@ -42,6 +43,20 @@ logger = logging.getLogger("rr_actors.experiments")
 
 RUN_IN_TIMEOUT = 2.0
 """Seconds `load_error` waits for its manager to take the switch."""
+
+KILL_RESOURCE_AIMS = 3
+"""Resource processes a `kill_resource` aims at, at most: each one that exits before the kill
+(its resource unloaded, or replaced by its manager) makes it aim at one there is now."""
+
+
+def _no_aim(gone: tuple[tuple[int, int], ...]) -> str:
+    """Why a `kill_resource` was not sent, `gone` the processes that exited before it."""
+    if not gone:
+        return "no resource process to kill"
+    pids = ", ".join(str(pid) for pid, _ in gone)
+    if len(gone) == KILL_RESOURCE_AIMS:
+        return f"pids {pids} had each just exited (ESRCH): tried {len(gone)}, the most"
+    return f"pid(s) {pids} had just exited (ESRCH), and no other resource process runs"
 
 
 def _registrar_of(registrar: rr.ResourceRegistrar) -> rr.ResourceRegistrar:
@@ -178,11 +193,12 @@ class ManagerFaults:
         if code:
             if pidfd is not None:
                 os.close(pidfd)
+            why = "had just exited" if code == errno.ESRCH else "could not be signalled"
             self.log.record(
                 fault,
                 scheduled,
                 None,
-                f"pid {pid} had just exited ({errno.errorcode.get(code, code)})",
+                f"pid {pid} {why} ({errno.errorcode.get(code, code)})",
                 target=target,
                 skipped=True,
             )
@@ -211,7 +227,11 @@ class ManagerFaults:
         finally:
             os.close(pidfd)
 
-    def _kill_resource(self, fault: ScheduledFault, scheduled: float) -> None:
+    def _kill_resource(
+        self, fault: ScheduledFault, scheduled: float, gone: tuple[tuple[int, int], ...] = ()
+    ) -> None:
+        """Aim `fault` at a resource process (picked by its seed among those of its manager(s)
+        now, none of `gone`, `(pid, creation time)` each) and hand the trigger its pidfd."""
         managers = (
             [fault.target]
             if fault.target is not None
@@ -221,31 +241,47 @@ class ManagerFaults:
                 if m.isolation == "process" and m.host in (None, self.home)
             ]
         )
-        candidates = resource_processes(self.sup, managers)
-        if not candidates:
-            self.log.record(fault, scheduled, None, "no resource process to kill", skipped=True)
-            return
-        name, pid, created = candidates[min(len(candidates) - 1, int(fault.pick * len(candidates)))]
-        try:
-            pidfd = os.pidfd_open(pid)
-        except ProcessLookupError:
-            self.log.record(fault, scheduled, None, f"process {pid} had just exited", skipped=True)
-            return
-        if start_time(pid) != created:
-            os.close(pidfd)
-            self.log.record(fault, scheduled, None, f"process {pid} had just exited", skipped=True)
-            return
+        while True:
+            candidates = [c for c in resource_processes(self.sup, managers) if c[1:] not in gone]
+            if not candidates or len(gone) == KILL_RESOURCE_AIMS:
+                self.log.record(fault, scheduled, None, _no_aim(gone), skipped=True)
+                return
+            name, pid, created = candidates[
+                min(len(candidates) - 1, int(fault.pick * len(candidates)))
+            ]
+            try:
+                pidfd = os.pidfd_open(pid)
+            except ProcessLookupError:
+                gone += ((pid, created),)
+                continue
+            if start_time(pid) == created:
+                break
+            os.close(pidfd)  # a zombie, or another process now
+            gone += ((pid, created),)
+        exited = "".join(f"; pid {p} had just exited" for p, _ in gone)
+        what = f"SIGKILL pid {pid} (a process of {name}{exited})"
         on_sent = functools.partial(
-            self._sent,
-            fault,
-            scheduled,
-            f"SIGKILL pid {pid} (a process of {name})",
-            None,
-            pid,
-            target=name,
+            self._resource_sent, fault, scheduled, what, (*gone, (pid, created)), name
         )
         self.trigger.send(self.t0 + scheduled, signal.SIGKILL, pidfd, on_sent)
         os.close(pidfd)
+
+    def _resource_sent(
+        self,
+        fault: ScheduledFault,
+        scheduled: float,
+        what: str,
+        aimed: tuple[tuple[int, int], ...],
+        name: str,
+        sent_at: float,
+        code: int,
+    ) -> None:
+        """A `kill_resource`'s reply (the trigger's reader thread): a process that exited before
+        it (unloaded, or replaced by its manager) makes it aim again, at once (its time passed)."""
+        if code == errno.ESRCH:
+            self._kill_resource(fault, scheduled, aimed)
+            return
+        self._sent(fault, scheduled, what, None, aimed[-1][0], sent_at, code, target=name)
 
     def _load_error(self, fault: ScheduledFault, scheduled: float) -> None:
         assert fault.target is not None

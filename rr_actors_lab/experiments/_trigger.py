@@ -167,19 +167,20 @@ class Trigger:
                 break
             seq, sent_at, code = REPLY.unpack(data)
             with self._lock:
-                on_sent = self._pending.pop(seq, None)
+                on_sent = self._pending.get(seq)
             if on_sent is not None:
                 try:
-                    on_sent(sent_at, code)
+                    on_sent(sent_at, code)  # (may `send` again: pending until it returns)
                 except Exception:
                     logger.exception("recording a fault failed")
             with self._idle:
+                self._pending.pop(seq, None)
                 self._idle.notify_all()
         with self._idle:  # the trigger is gone: what it did not answer was not sent
             pending, self._pending = self._pending, {}
             self._idle.notify_all()
         for on_sent in pending.values():
-            on_sent(0.0, errno.ESRCH)
+            on_sent(0.0, errno.ECANCELED)  # (ESRCH is the target's: it had exited)
 
 
 if __name__ == "__main__":
