@@ -109,11 +109,9 @@ HOOKS = Hooks()
 def set_title(name: str) -> None:
     """Name this process after its manager for `ps` and `top` (the kernel's 15-byte name
     is the name itself; with `setproctitle`, the command line `rr-actors: <name>`)."""
-    try:
-        import setproctitle  # noqa: PLC0415 - optional; preloaded by the forkserver
-    except ImportError:
-        pass
-    else:
+    with contextlib.suppress(ImportError):  # (optional; preloaded by the forkserver)
+        import setproctitle  # noqa: PLC0415
+
         setproctitle.setproctitle(f"{TITLE_PREFIX}{name}")
     PLATFORM.set_process_name(name)  # after setproctitle, which may set it to the title
 
@@ -226,6 +224,7 @@ def main(
     """
     _let_ctrl_c_pass()  # first: a Ctrl-C from here on is the supervisor's
     PLATFORM.die_with_parent(parent)
+    number_events()
     set_title(config.name)
     _run_manager(setup, config, address, conn, forward, tally, announced)
 
@@ -256,6 +255,7 @@ def standby(conn: Connection, parent: int | None = None, warm: bool = True) -> N
     a start in order) when told (`WarmUp`), so that it does not compete with the starts."""
     _let_ctrl_c_pass()  # first: a Ctrl-C from here on is the supervisor's
     PLATFORM.die_with_parent(parent)
+    number_events()  # (a manager process's, before it idles: not on the restart path)
     set_title("spare")
     try:
         start = None if warm else conn.recv()
@@ -308,7 +308,6 @@ class _EventLine:
         self.control = control
         self.name = name
         self.journal = None if tally is None else Journal.open(tally)
-        number_events()
         self.hub: Publisher[events.Event] = events.publisher()
         self.forwarder: Forwarder[events.Event] | None = None
         self.sink: Callable[[events.Event], None] | None = None

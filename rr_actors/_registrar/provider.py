@@ -22,11 +22,11 @@ Why the actor never waits for user code, how coroutine callbacks run, and who de
 under overload: docs/explanation/inside.md, "The provider".
 
 Why one module past the 1,200 lines of code a module keeps to: its parts are one story
-(a load, its sharing, its release, its unload), the layers above and below tell none of
-it, and the runtime's file budget (`RUNTIME_FILES` in tests/test_repository.py) has no
-file to spare. Where it splits by collaborator, when one is freed: `ServerActor`,
-`Teardown` and `Servers` (a server's actor, its registration, a resource's unload through
-it; none calls `Provider` or `Unloading`) as a module below this one.
+(a load, its sharing, its release, its unload), and a restart runs them together (`Servers`
+registers, `ServerActor` loads, `Provider` answers): a module more is a file more that each
+restart crosses (issue 71, `benchmarks/call_files.py`). Where it splits by collaborator if
+that count allows: `ServerActor`, `Teardown` and `Servers` (a server's actor, its registration,
+a resource's unload through it; none calls `Provider` or `Unloading`), a module below this.
 """
 
 from __future__ import annotations

@@ -306,11 +306,11 @@ class _Sent:
         self.messages.append(message)
 
 
-def event_line(monkeypatch: pytest.MonkeyPatch, *, hold: float) -> tuple[Any, _Sent]:
-    """A child's event line forwarding to `_Sent` (this process's events stay unnumbered)."""
+def event_line(*, hold: float) -> tuple[Any, _Sent]:
+    """A child's event line forwarding to `_Sent` (this process's events stay unnumbered: a
+    manager process numbers them as it starts, `main` or `standby`, not its line)."""
     from rr_actors._process import child  # noqa: PLC0415 - the module under test
 
-    monkeypatch.setattr(child, "number_events", lambda: None)
     sent = _Sent()
     line = child._EventLine(sent, "held", on=True, tally=None, hold=hold)  # type: ignore[arg-type]
     return line, sent
@@ -321,12 +321,10 @@ class TestTheEventsOfAStartFollowReady:
     after `Ready`: the supervisor's process reads `Ready` first, and the restart does not
     wait for their pickling, their passage and their unpickling (issue 52 part 5)."""
 
-    def test_events_published_before_ready_are_held_then_sent_in_order(
-        self, monkeypatch: pytest.MonkeyPatch
-    ) -> None:
+    def test_events_published_before_ready_are_held_then_sent_in_order(self) -> None:
         from rr_actors._process.control import Events, Ready  # noqa: PLC0415
 
-        line, sent = event_line(monkeypatch, hold=60.0)
+        line, sent = event_line(hold=60.0)
         try:
             first = rr.events.ChildRestarted("sup", "a", 1, 0.0)
             second = rr.events.ChildRestarted("sup", "b", 2, 0.0)
@@ -345,10 +343,8 @@ class TestTheEventsOfAStartFollowReady:
         finally:
             line.flush(timeout=5.0)
 
-    def test_events_published_after_the_start_are_sent_at_once(
-        self, monkeypatch: pytest.MonkeyPatch
-    ) -> None:
-        line, sent = event_line(monkeypatch, hold=60.0)
+    def test_events_published_after_the_start_are_sent_at_once(self) -> None:
+        line, sent = event_line(hold=60.0)
         try:
             line.started()
             event = rr.events.ChildRestarted("sup", "a", 1, 0.0)
@@ -359,10 +355,8 @@ class TestTheEventsOfAStartFollowReady:
         finally:
             line.flush(timeout=5.0)
 
-    def test_a_start_longer_than_the_hold_forwards_its_events_without_ready(
-        self, monkeypatch: pytest.MonkeyPatch
-    ) -> None:
-        line, sent = event_line(monkeypatch, hold=0.05)
+    def test_a_start_longer_than_the_hold_forwards_its_events_without_ready(self) -> None:
+        line, sent = event_line(hold=0.05)
         try:
             event = rr.events.ChildRestarted("sup", "a", 1, 0.0)
             line.hub.publish(event)
@@ -420,9 +414,7 @@ def test_a_subscriber_blocked_on_catalog_restored_does_not_delay_serving(tmp_pat
         assert rr.events.CatalogRestored not in kinds[1:]
 
 
-def test_an_event_forwarded_as_its_journal_pickle_arrives_as_the_event(
-    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
-) -> None:
+def test_an_event_forwarded_as_its_journal_pickle_arrives_as_the_event() -> None:
     """The forwarder sends the journal's pickle of an event, not the event pickled again:
     the supervisor's process unpickles the event itself, in the order published."""
     import pickle  # noqa: PLC0415
@@ -430,7 +422,6 @@ def test_an_event_forwarded_as_its_journal_pickle_arrives_as_the_event(
     from rr_actors._process import child  # noqa: PLC0415
     from rr_actors._process.tally import Tally  # noqa: PLC0415
 
-    monkeypatch.setattr(child, "number_events", lambda: None)
     tally = Tally.create()
     assert tally is not None
     sent = _Sent()

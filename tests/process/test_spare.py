@@ -3,12 +3,16 @@
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import Any
 
 import pytest
 
+import rr_actors as rr
+from rr_actors import events
 from rr_actors._process import child
 from rr_actors._process.spare import SparePool
 from rr_actors._store import schema
+from tests.support.supervising import kill_and_wait_restarted, process
 from tests.support.waiting import wait_for
 
 BOUND = 30.0
@@ -80,3 +84,27 @@ class TestWarmUp:
         misses = schema._objects_of.cache_info().misses
         assert schema.expected_objects() is schema.expected_objects()
         assert misses == schema._objects_of.cache_info().misses  # made once, by the warm-up
+
+
+@pytest.mark.usefixtures("process_helpers")
+def test_a_manager_a_spare_runs_after_a_kill_numbers_its_events(
+    supervisors: Callable[..., rr.Supervisor], uid: str
+) -> None:
+    """A spare numbers the events of the manager it will run as it begins to idle
+    (`standby`), not once it is taken: off the restart path (issue 71 item 5)."""
+    name = f"erm-{uid}"
+    sup = supervisors([process(name)]).start()
+    pool = sup._tree.processes.spares
+    assert pool is not None
+
+    def spares() -> list[Any]:
+        with pool._cond:
+            return list(pool._idle)
+
+    wait_until(lambda: any(s.check_warm() for s in spares()), "a warm spare")
+    idling = {s.process.pid for s in spares()}  # (the oldest warm one is taken: any of them)
+    kill_and_wait_restarted(sup, name)
+
+    assert sup.child(name).pid in idling  # (the restart ran in a spare)
+    built = sup.run_in(name, lambda _r: events.LoadFailed(name, "s", "r", "q", "E", "-").seq)
+    assert built > 0
