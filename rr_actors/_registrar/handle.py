@@ -682,7 +682,8 @@ class Here:
     ) -> Steps[Query]:
         if on_status is not None and not callable(on_status):
             raise ConfigError(f"on_status must be callable, got {on_status!r}")
-        check_choice("if_overloaded", if_overloaded, ("wait", "raise"))
+        if if_overloaded not in ("wait", "raise"):  # (config.py off a call's path: checked first)
+            check_choice("if_overloaded", if_overloaded, ("wait", "raise"))
         if not (isinstance(target_rr, str) and isinstance(server, str)):
             check_strs(target_rr=target_rr, server=server)
         if query_id is not None and not (isinstance(query_id, str) and query_id):
