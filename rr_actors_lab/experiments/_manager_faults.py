@@ -279,7 +279,10 @@ class ManagerFaults:
         """A `kill_resource`'s reply (the trigger's reader thread): a process that exited before
         it (unloaded, or replaced by its manager) makes it aim again, at once (its time passed)."""
         if code == errno.ESRCH:
-            self._kill_resource(fault, scheduled, aimed)
+            try:
+                self._kill_resource(fault, scheduled, aimed)
+            except (OSError, rr.RrError) as exc:  # (the tree stopping, no descriptor left)
+                self.log.record(fault, scheduled, None, f"aiming again: {exc}", skipped=True)
             return
         self._sent(fault, scheduled, what, None, aimed[-1][0], sent_at, code, target=name)
 

@@ -8,6 +8,7 @@ results and files; the tests of the same seed and of a cut connection run their 
 from __future__ import annotations
 
 import csv
+import errno
 import functools
 import json
 import os
@@ -34,6 +35,7 @@ from rr_actors_lab.experiments import (
     ExperimentInterruptedError,
     Progress,
     Results,
+    _manager_faults,
     experiment,
     parse_plan,
     run,
@@ -466,6 +468,53 @@ def test_a_resource_process_replaced_between_its_read_and_the_kill_is_not_what_i
             "had just exited)"
         ) == record.detail
         assert [] == wait_gone([second["pid"]], 10)
+
+
+def test_a_kill_resource_whose_aim_again_fails_is_recorded_skipped_saying_why(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Aiming again runs on the trigger's reader thread: an error there (the tree stopping,
+    no descriptor left) is the fault's record, skipped, not a log line and no record."""
+    plan = parse_plan(ERM_ONLY)
+    bus = str(tmp_path / "bus")
+    sup = build_tree(plan, None)
+    with sup:
+        app = sup.registrar(rr.RegistrarConfig("app", call_timeout=20.0))
+        first = app.call(
+            "erm",
+            PROGRAM_SERVER,
+            program_request("lidar", "lidar-a", bus, watch_pid=os.getpid(), rate=5.0, seed=0),
+        )
+
+        def unload_then_fail() -> None:
+            app.unload(first.id)  # (returns once the process exited: the kill finds none)
+
+            def no_descriptor(*_: object) -> list[tuple[str, int, int]]:
+                raise OSError(errno.EMFILE, "Too many open files")
+
+            monkeypatch.setattr(_manager_faults, "resource_processes", no_descriptor)
+
+        trigger = _ReplacedFirst(unload_then_fail)
+        log = FaultLog()
+        faults = ManagerFaults(
+            sup,
+            plan,
+            time.monotonic(),
+            agenda=Agenda(lambda exc, left: None),
+            log=log,
+            trigger=trigger,
+        )
+        try:
+            faults.fire(
+                ScheduledFault(fault=0, n=0, kind="kill_resource", target="erm", at=0.0, pick=0.0),
+                0.0,
+            )
+        finally:
+            trigger.close(timeout=10)
+        (record,) = log.records
+
+        assert record.skipped
+        assert "aiming again: [Errno 24] Too many open files" == record.detail
 
 
 def test_the_every_fault_runs_count_what_they_did(every_fault: tuple[Results, Path]) -> None:
