@@ -137,6 +137,8 @@ _COME_BACK_MOST = 10.0
 _LOAD_S_WEIGHT = 0.2
 """How far one load's run time moves its server's average: about the last ten loads count."""
 
+Share = tuple[bool, int, int, int, int, int, float, tuple[int, ...], tuple[float, ...]]
+
 
 class Lives:
     """The run of each consumer registrar that reconciled here last (`Reconcile.life`): a
@@ -213,10 +215,12 @@ class Admission:
             del self.paced[server]
         return at - now
 
-    def refusal(self, server: str, origin: str, bound: int) -> tuple[int, ...] | None:
-        """Why `server` takes no new load of consumer `origin` now, if it does not (noted as
-        wanting loads there): (its loads under way, `origin`'s, its share, among how many
-        consumers, how many wait ahead of it)."""
+    def refusal(self, server: str, origin: str, bound: int) -> Share | None:
+        """Whether `server` takes no new load of consumer `origin` now (noted as wanting loads
+        there if not), and on what: `None` if it takes it and no other consumer waits, else
+        (refused, its loads under way, `origin`'s, its share, among how many consumers, how
+        many wait ahead of it, when `origin` began to wait (`runtime.monotonic()`; now if it did
+        not), the others waiting's loads under way and when each began)."""
         pending = self.pending.get(server, 0)
         if not pending and server not in self.wanting:  # (the hot path: nobody to share with)
             return None
@@ -231,15 +235,14 @@ class Admission:
         consumers = {*of, *wanting, origin}
         share = max(1, bound // len(consumers))
         since, told = wanting.get(origin, (now, now))  # (`told`: when it is back, if later)
-        ahead = sum(  # (others waiting with fewer under way, or as many and longer)
-            (of.get(name, 0), first) < (mine, since)
-            for name, (first, _) in wanting.items()
-            if name != origin
-        )
+        others = [(of.get(n, 0), first) for n, (first, _) in wanting.items() if n != origin]
+        ahead = sum(other < (mine, since) for other in others)  # (fewer under way, or longer)
+        counts = (pending, mine, share, len(consumers), ahead, since)
+        waits = (tuple(loads for loads, _ in others), tuple(first for _, first in others))
         if pending + ahead < bound and mine < share:  # (a free slot each kept for those)
-            return None
+            return (False, *counts, *waits) if others else None
         self.wanting.setdefault(server, {})[origin] = (since, max(now, told))
-        return pending, mine, share, len(consumers), ahead
+        return (True, *counts, *waits)
 
     def admit(self, rid: str, server: str, origin: str) -> None:
         self.pending[server] = self.pending.get(server, 0) + 1
@@ -532,14 +535,17 @@ class Provider:
         loads under way (`Admission`): then `OverloadedError`."""
         bound = server.max_pending or self.registrar.config.max_pending
         origin = message.origin_rr
-        refused = self.admission.refusal(server.name, origin, bound)
-        if refused is not None:
-            pending, mine, share, among, ahead = refused
+        told = self.admission.refusal(server.name, origin, bound)
+        if told is not None and not told[0] and self.registrar.events.active:  # (others wait)
+            shares = (self.registrar.name, server.name, origin, *told[1:5], bound, *told[6:])
+            self.registrar.events.publish(events.ShareAdmitted(*shares))
+        if told is not None and told[0]:
+            pending, mine, share = told[1:4]
             if pending >= bound:  # (not a consumer held to its share: the server is full)
                 self.refused(server, pending, bound)
             elif self.registrar.events.active:  # (held to its share: each refusal told)
-                told = (server.name, origin, pending, mine, share, among, ahead, bound)
-                self.registrar.events.publish(events.ShareRefused(self.registrar.name, *told))
+                refused = (self.registrar.name, server.name, origin, *told[1:6], bound)
+                self.registrar.events.publish(events.ShareRefused(*refused))
             why = (
                 f"has {pending} loads queued or running, its bound (max_pending={bound})"
                 if pending >= bound

@@ -45,6 +45,7 @@ __all__ = [
     "Rows",
     "ServerOverloaded",
     "ServerQueriesListed",
+    "ShareAdmitted",
     "ShareRefused",
     "StatusAnswered",
     "StatusDelivered",
@@ -669,6 +670,27 @@ class ShareRefused(_Numbered):
     bound: int
 
 
+@_kind
+class ShareAdmitted(_Numbered):
+    """A server admitted a load of `consumer` while other consumers waited for loads there, on
+    the counts of `ShareRefused` (`Admission.refusal`): `since`, when it was first refused (the
+    provider process's `time.monotonic()`, seconds; the admission's time if it was not), and
+    of each other consumer waiting, its loads under way (`waiting`) and when it was first
+    refused (`firsts`, in the same order)."""
+
+    registrar: str
+    server: str
+    consumer: str
+    pending: int
+    under_way: int
+    share: int
+    consumers: int
+    bound: int
+    since: float
+    waiting: tuple[int, ...]
+    firsts: tuple[float, ...]
+
+
 # -- recovery and the stream itself ---------------------------------------------------------
 
 
@@ -794,6 +816,7 @@ Event: TypeAlias = (
     | UnloadCutShort
     | ServerOverloaded
     | ShareRefused
+    | ShareAdmitted
     | EventsDropped
     | EventsUnpublished
 )

@@ -142,6 +142,11 @@ def describe(event: kinds.Event) -> str:  # noqa: PLR0911, PLR0912 - one case pe
                 f"{event.registrar}/{event.server} refused {event.consumer} at {event.under_way} "
                 f"of {event.pending} loads, its share {event.share} of {event.bound}"
             )
+        case kinds.ShareAdmitted():
+            return (
+                f"{event.registrar}/{event.server} admitted {event.consumer} at {event.under_way} "
+                f"of {event.pending} loads, its share {event.share}, {len(event.waiting)} waiting"
+            )
         case kinds.UnloadCutShort():
             return (
                 f"{event.registrar}/{event.server}: the unload of {_id(event.resource_id)} was "

@@ -1,7 +1,7 @@
 """The provider's side of a run: one pass over each provider's catalog as its events tell it
 (`kept`, `unload-once`, `no-leak`, `one-resource`, `release-match`, `in-doubt`, `dedup`,
 `restore-first`), `unload-order`, `dependency-held`, `doubt-reported`, `shed-needed`,
-`overload-paced` and `share-needed`.
+`overload-paced`, `share-needed` and `share-kept`.
 
 ```
  steps (_history.walk) ──► Providers.run: per registrar a Catalog, a handler per event kind
@@ -14,6 +14,7 @@
  history ──► shed_needed: each load shed with nothing ahead against its server's load times
  steps ──► overload_paced: each server's ServerOverloaded at its bound, a second apart a life
  steps ──► share_needed: each ShareRefused past the consumer's share, or behind others waiting
+ steps ──► share_kept: each ShareAdmitted under the consumer's share, a slot left for those ahead
 ```
 
 Every lookup is a dict's: a run of a million events is checked in one linear pass.
@@ -41,6 +42,7 @@ __all__ = [
     "dependency_held",
     "doubt_reported",
     "overload_paced",
+    "share_kept",
     "share_needed",
     "shed_needed",
     "unload_order",
@@ -905,6 +907,50 @@ def share_needed(steps: list[Step]) -> list[Finding]:
                 f"{name}/{event.server} refused a load of {event.consumer} holding "
                 f"{event.under_way} of its {event.pending} loads under way (bound {event.bound}, "
                 f"share {event.share} among {event.consumers}, {event.ahead} ahead): {why}",
+                (line,),
+                (name,),
+            )
+        )
+    return findings
+
+
+def share_kept(steps: list[Step]) -> list[Finding]:
+    """`share-kept`: a server admits a load while other consumers wait there only under the
+    consumer's fair share and with a free slot left for each waiting ahead of it, one with fewer
+    loads under way or as many and waiting longer (`Admission.refusal`). Each `ShareAdmitted`
+    has counts that add up (none below 0, the consumer's and the waiting's loads at most
+    `pending`, fewer waiting than `consumers`), the share the docs give, `under_way` < `share`
+    and `pending` + those ahead < `bound`."""
+    findings: list[Finding] = []
+    for name, line, event, _new, _life in steps:
+        if not isinstance(event, events.ShareAdmitted):
+            continue
+        share = max(1, event.bound // max(1, event.consumers))
+        me = (event.under_way, event.since)  # (fewer loads first, then the longest waiting)
+        ahead = sum(other < me for other in zip(event.waiting, event.firsts, strict=False))
+        if not (
+            min((event.under_way, *event.waiting)) >= 0
+            and event.under_way + sum(event.waiting) <= event.pending
+            and len(event.waiting) == len(event.firsts)
+            and 0 < len(event.waiting) < event.consumers
+        ):
+            why = "its counts do not add up: loads of its consumers within its own, those waiting"
+        elif event.share != share:
+            why = f"its share is {share} (its bound among its consumers, at least 1)"
+        elif event.under_way >= event.share:
+            why = "it held its share already"
+        elif event.pending + ahead >= event.bound:
+            why = f"it took the free slot kept for the {ahead} waiting ahead of it"
+        else:
+            continue
+        findings.append(
+            Finding(
+                "share-kept",
+                "violation",
+                f"{name}/{event.server} admitted a load of {event.consumer} holding "
+                f"{event.under_way} of its {event.pending} loads under way (bound {event.bound}, "
+                f"share {event.share} among {event.consumers}, {len(event.waiting)} others "
+                f"waiting holding {list(event.waiting)}): {why}",
                 (line,),
                 (name,),
             )

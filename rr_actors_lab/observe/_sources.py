@@ -151,6 +151,7 @@ def _touched(event: events.Event) -> tuple[str, ...] | None:
             | events.ManagerOverloaded()
             | events.ServerOverloaded()
             | events.ShareRefused()
+            | events.ShareAdmitted()
             | events.StatusAnswered()
             | events.QueriesFetched()
             | events.ServerQueriesListed()

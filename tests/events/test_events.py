@@ -59,6 +59,7 @@ EXAMPLES: list[events.Event] = [
     events.UnloadCutShort("erm", "start_process", RID),
     events.ServerOverloaded("erm", "start_process", 1000, 1000, 17),
     events.ShareRefused("erm", "start_process", "api", 600, 500, 500, 2, 0, 1000),
+    events.ShareAdmitted("erm", "start_process", "api", 5, 1, 2, 2, 5, 0.25, (0,), (0.5,)),
     events.EventsDropped(17),
     events.EventsUnpublished((4, 5), pid=42),
 ]

@@ -11,6 +11,7 @@ import textwrap
 from collections import defaultdict
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -1185,7 +1186,7 @@ def _overloaded(
 
 
 def test_a_server_told_overloaded_again_within_a_second_is_found() -> None:
-    """Issue 68 item 8: the mutant `provider.py:523` (`<` made `is`) publishes a
+    """Issue 68 item 8: the mutant `provider.py:526` (`<` made `is`) publishes a
     `ServerOverloaded` at every refusal, hundreds a second, where one a second is the bound;
     every seed of every plan held."""
     h = clean()
@@ -1240,7 +1241,7 @@ def _share_refused(
 def test_a_refusal_of_a_consumer_a_server_with_room_did_not_need_is_found(
     refused: tuple[int, int, int],
 ) -> None:
-    """Issue 68 items 7-8: the mutants of the share (`provider.py:232`, `bound // consumers`
+    """Issue 68 items 7-8: the mutants of the share (`provider.py:236`, `bound // consumers`
     made `>>`, `%`, `+`, ...) refuse a consumer under its fair share, or tell a share that is
     not the bound divided among the consumers."""
     h = clean()
@@ -1260,6 +1261,62 @@ def test_a_refusal_at_a_consumers_share_or_behind_others_waiting_holds(
 ) -> None:
     h = clean()
     assert [] == _of_rule(renumbered([*h[:3], _share_refused(*refused)]), "share-needed")
+
+
+def _share_admitted(
+    pending: int,
+    under_way: int,
+    share: int,
+    waiting: tuple[int, ...] = (1,),
+    since: float = 5.0,
+    firsts: tuple[float, ...] = (4.5,),
+    consumers: int = 2,
+) -> events.ShareAdmitted:
+    """erm's server `cam` (its bound 8) admitted a load of consumer `api` at 5.0 while others
+    waited (by default one, holding 1 load, first refused 0.5 s before)."""
+    return events.ShareAdmitted(
+        "erm", "cam", "api", pending, under_way, share, consumers, 8, since, waiting, firsts,
+        at=5.0, pid=P,
+    )  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    "admitted",
+    [
+        pytest.param((5, 4, 4), id="at-its-share"),
+        pytest.param((7, 2, 4), id="the-free-slot-kept-for-one-with-fewer"),
+        pytest.param((7, 2, 4, (2,), 4.9), id="the-free-slot-kept-for-one-as-many-waiting-longer"),
+        pytest.param((8, 1, 4, (2,)), id="at-the-bound"),
+        pytest.param((5, 1, 3), id="a-share-not-the-bound-among-its-consumers"),
+        pytest.param((3, 2, 4, (2,)), id="more-loads-of-its-consumers-than-under-way"),
+        pytest.param((3, 1, 4, ()), id="nobody-waiting"),
+    ],
+)
+def test_a_load_admitted_past_a_consumers_share_or_the_slot_kept_for_those_waiting_is_found(
+    admitted: tuple[Any, ...],
+) -> None:
+    """Issue 68 items 7-8: the mutants of the order of those waiting (`provider.py:239`,
+    `other < (mine, since)` made `==`, `is`, `>`, ...) and of the admission's test
+    (`provider.py:242`, `pending + ahead < bound` made `-`, `<=`, `or`, ...) admit a load past
+    the consumer's share, or into the free slot kept for a consumer waiting ahead of it."""
+    h = clean()
+    assert {4} == _found(renumbered([*h[:3], _share_admitted(*admitted)]), "share-kept")
+
+
+@pytest.mark.parametrize(
+    "admitted",
+    [
+        pytest.param((6, 2, 4, (3,)), id="under-its-share-none-ahead"),
+        pytest.param((6, 2, 4), id="a-free-slot-left-for-one-ahead"),
+        pytest.param((7, 2, 4, (2,), 4.5, (4.8,)), id="waiting-longer-than-one-with-as-many"),
+        pytest.param((3, 0, 1, (0, 0), 4.5, (4.6, 4.7), 9), id="at-least-1-among-9-consumers"),
+    ],
+)
+def test_a_load_admitted_under_a_consumers_share_with_a_slot_for_each_ahead_holds(
+    admitted: tuple[Any, ...],
+) -> None:
+    h = clean()
+    assert [] == _of_rule(renumbered([*h[:3], _share_admitted(*admitted)]), "share-kept")
 
 
 def _plant(monkeypatch: pytest.MonkeyPatch, where: str, old: str, new: str) -> None:
@@ -1336,7 +1393,7 @@ def _plant(monkeypatch: pytest.MonkeyPatch, where: str, old: str, new: str) -> N
             "if now - last < _REFUSALS_EVERY:",
             "if now - last is _REFUSALS_EVERY:",
             "overload-paced",
-            id="the mutant provider.py:523 is caught by overload-paced at simoverload seed 1",
+            id="the mutant provider.py:526 is caught by overload-paced at simoverload seed 1",
         ),
         pytest.param(  # (a share of `bound >> consumers`: 5 >> 2, 1 where 2 is api's share)
             "simfair",
@@ -1344,7 +1401,7 @@ def _plant(monkeypatch: pytest.MonkeyPatch, where: str, old: str, new: str) -> N
             "share = max(1, bound // len(consumers))",
             "share = max(1, bound >> len(consumers))",
             "share-needed",
-            id="the mutant provider.py:232 is caught by share-needed at simfair seed 1",
+            id="the mutant provider.py:236 is caught by share-needed at simfair seed 1",
         ),
         pytest.param(  # (simshed's end stops its tree with `stop(parallel=True)`)
             "simshed",
@@ -3993,11 +4050,21 @@ def refuse_under_share(h: History) -> History | None:
     return None
 
 
+def admit_past_share(h: History) -> History | None:
+    """A load admitted while others waited, of a consumer holding its share already."""
+    for i, e in enumerate(h):
+        if type(e) is events.ShareAdmitted:
+            held = max(e.pending, e.share + sum(e.waiting))
+            return [*h[:i], dataclasses.replace(e, under_way=e.share, pending=held), *h[i + 1 :]]
+    return None
+
+
 MUTATIONS: dict[str, tuple[Callable[[History], History | None], str]] = {
     # name: (the mutation, the rule that must catch it)
     "duplicate-unload": (duplicate(events.ResourceUnloaded), "unload-once"),
     "overloaded-told-twice": (duplicate(events.ServerOverloaded), "overload-paced"),
     "refused-under-share": (refuse_under_share, "share-needed"),
+    "admitted-past-share": (admit_past_share, "share-kept"),
     "unload-before-release": (unload_before_release, "unload-once"),
     "drop-last-release": (drop_last_release, "unload-once"),
     "duplicate-release": (duplicate(events.ConsumerReleased), "unload-once"),

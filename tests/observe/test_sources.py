@@ -364,7 +364,7 @@ def test_only_a_life_s_start_or_end_a_give_up_or_a_gap_refreshes_every_catalog()
     """An event names the registrars whose catalog it changed, or none: a share refusal or a
     status's answer refreshed every manager's catalog (a flood of them, every interval);
     only a restore, a registrar's stop, a supervisor's give-up and events dropped may have
-    changed any."""
+    changed any (a share's admission, `ShareAdmitted`, none: its load's events do)."""
     from rr_actors_lab.observe._sources import _touched  # noqa: PLC0415
     from tests.events.test_events import EXAMPLES  # noqa: PLC0415 - one example a kind
 
