@@ -40,7 +40,7 @@ import logging
 import math
 import weakref
 from collections.abc import Awaitable, Callable
-from typing import Any, cast
+from typing import Any, NamedTuple, cast
 
 from rr_actors import events
 from rr_actors._catalog import (
@@ -137,7 +137,22 @@ _COME_BACK_MOST = 10.0
 _LOAD_S_WEIGHT = 0.2
 """How far one load's run time moves its server's average: about the last ten loads count."""
 
-Share = tuple[bool, int, int, int, int, int, float, tuple[int, ...], tuple[float, ...]]
+
+class Share(NamedTuple):
+    """What `Admission.refusal` decided a load of a consumer on, told in `ShareRefused` or
+    `ShareAdmitted`: the server's loads under way (`pending`), the consumer's (`mine`), its
+    share among `among` consumers, how many wait `ahead` of it, when it began to wait (`since`,
+    `runtime.monotonic()`: now if it did not), each other one waiting's loads and first wait."""
+
+    refused: bool
+    pending: int
+    mine: int
+    share: int
+    among: int
+    ahead: int
+    since: float
+    waiting: tuple[int, ...]
+    firsts: tuple[float, ...]
 
 
 class Lives:
@@ -217,10 +232,7 @@ class Admission:
 
     def refusal(self, server: str, origin: str, bound: int) -> Share | None:
         """Whether `server` takes no new load of consumer `origin` now (noted as wanting loads
-        there if not), and on what: `None` if it takes it and no other consumer waits, else
-        (refused, its loads under way, `origin`'s, its share, among how many consumers, how
-        many wait ahead of it, when `origin` began to wait (`runtime.monotonic()`; now if it did
-        not), the others waiting's loads under way and when each began)."""
+        there if not), and on what: `None` if it takes it and no other consumer waits."""
         pending = self.pending.get(server, 0)
         if not pending and server not in self.wanting:  # (the hot path: nobody to share with)
             return None
@@ -240,9 +252,9 @@ class Admission:
         counts = (pending, mine, share, len(consumers), ahead, since)
         waits = (tuple(loads for loads, _ in others), tuple(first for _, first in others))
         if pending + ahead < bound and mine < share:  # (a free slot each kept for those)
-            return (False, *counts, *waits) if others else None
+            return Share(False, *counts, *waits) if others else None
         self.wanting.setdefault(server, {})[origin] = (since, max(now, told))
-        return (True, *counts, *waits)
+        return Share(True, *counts, *waits)
 
     def admit(self, rid: str, server: str, origin: str) -> None:
         self.pending[server] = self.pending.get(server, 0) + 1
@@ -535,17 +547,20 @@ class Provider:
         loads under way (`Admission`): then `OverloadedError`."""
         bound = server.max_pending or self.registrar.config.max_pending
         origin = message.origin_rr
-        told = self.admission.refusal(server.name, origin, bound)
-        if told is not None and not told[0] and self.registrar.events.active:  # (others wait)
-            shares = (self.registrar.name, server.name, origin, *told[1:5], bound, *told[6:])
-            self.registrar.events.publish(events.ShareAdmitted(*shares))
-        if told is not None and told[0]:
-            pending, mine, share = told[1:4]
+        on = self.admission.refusal(server.name, origin, bound)
+        counts = (
+            () if on is None else (server.name, origin, on.pending, on.mine, on.share, on.among)
+        )
+        if on is not None and not on.refused and self.registrar.events.active:  # (others wait)
+            told = (*counts, bound, on.since, on.waiting, on.firsts)
+            self.registrar.events.publish(events.ShareAdmitted(self.registrar.name, *told))
+        if on is not None and on.refused:
+            pending, mine, share = on.pending, on.mine, on.share
             if pending >= bound:  # (not a consumer held to its share: the server is full)
                 self.refused(server, pending, bound)
             elif self.registrar.events.active:  # (held to its share: each refusal told)
-                refused = (self.registrar.name, server.name, origin, *told[1:6], bound)
-                self.registrar.events.publish(events.ShareRefused(*refused))
+                told = (*counts, on.ahead, bound)
+                self.registrar.events.publish(events.ShareRefused(self.registrar.name, *told))
             why = (
                 f"has {pending} loads queued or running, its bound (max_pending={bound})"
                 if pending >= bound

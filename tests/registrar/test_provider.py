@@ -3437,25 +3437,33 @@ def test_a_coroutine_load_handed_to_a_loop_stopped_before_it_starts_fails_as_it_
         server.stop()
 
 
+def _refused(admission: Admission, consumer: str, bound: int) -> bool:
+    """Whether `admission` refuses a load of `consumer` at server "s" now (`None`: admitted,
+    nobody else waiting; an admission while others wait is told too, `ShareAdmitted`)."""
+    on = admission.refusal("s", consumer, bound)
+    return on is not None and on.refused
+
+
 def test_a_freed_slot_goes_to_the_consumer_that_waits_not_to_one_that_asks_again_at_once() -> None:
     """Review of issue 53's shares: with a bound below the number of consumers each
     share rounds to 1, and the slot a flooding consumer's load freed went back to it (it
     asks again at once; a refused caller pauses 5-100 ms between its tries). Free slots
     are kept for the consumers that wait with fewer loads under way; spare ones are not."""
+
     one = Admission()
     one.admit("r1", "s", "A")
-    assert one.refusal("s", "B", 1) is not None  # (full: B waits)
+    assert _refused(one, "B", 1)  # (full: B waits)
     one.done("r1")
-    assert one.refusal("s", "A", 1) is not None  # (the free slot is B's)
-    assert one.refusal("s", "B", 1) is None
+    assert _refused(one, "A", 1)  # (the free slot is B's)
+    assert not _refused(one, "B", 1)  # (admitted while A waits: told in ShareAdmitted)
 
     three = Admission()
     three.admit("x", "s", "A")
     three.admit("y", "s", "B")
-    assert three.refusal("s", "C", 2) is not None
+    assert _refused(three, "C", 2)
     three.done("x")
-    assert three.refusal("s", "A", 2) is not None  # (C waits with none under way)
-    assert three.refusal("s", "C", 2) is None
+    assert _refused(three, "A", 2)  # (C waits with none under way)
+    assert not _refused(three, "C", 2)
 
     spare = Admission()
     for n in range(3):
@@ -3465,8 +3473,8 @@ def test_a_freed_slot_goes_to_the_consumer_that_waits_not_to_one_that_asks_again
     spare.admit("b2", "s", "B")
     spare.admit("b3", "s", "B")
     spare.admit("b4", "s", "B")
-    assert spare.refusal("s", "B", 10) is not None  # (B past its share of 5)
-    assert spare.refusal("s", "A", 10) is None  # (a slot kept for nobody ahead of A)
+    assert _refused(spare, "B", 10)  # (B past its share of 5)
+    assert not _refused(spare, "A", 10)  # (a slot kept for nobody ahead of A)
 
 
 @pytest.mark.parametrize(
@@ -3504,15 +3512,15 @@ def test_a_consumer_told_to_come_back_later_than_wanting_still_wants_until_it_do
     monkeypatch.setattr(runtime, "monotonic", lambda: now[0])
     admission = Admission()
     admission.admit("b0", "s", "B")  # (B floods: the bound of 1 is its)
-    assert admission.refusal("s", "A", 1) is not None
+    assert _refused(admission, "A", 1)
     after = admission.come_back("s", "A", 5.0, None)  # (loads take 5 s: come back in 5)
     assert after is not None
     assert after > 2.0
     now[0] += 3.0  # (A pauses; B's load ends, B asks again at once)
     admission.done("b0")
-    assert admission.refusal("s", "B", 1) is not None  # (the free slot is kept for A)
+    assert _refused(admission, "B", 1)  # (the free slot is kept for A)
     now[0] += after - 3.0  # (A comes back when told)
-    assert admission.refusal("s", "A", 1) is None
+    assert not _refused(admission, "A", 1)
 
 
 def test_callers_that_wait_are_told_one_slot_after_another_and_those_that_do_not_keep_none(
