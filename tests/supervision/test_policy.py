@@ -1538,6 +1538,28 @@ class TestAWholeTreesStop:
 
         assert "exit code 1" == sup.child(provider).last_exit  # it gave up: not killed
 
+    def test_a_manager_that_gives_up_its_stop_and_flushes_slowly_exits_within_its_bound(
+        self, uid: str
+    ) -> None:
+        """The same, its last events' flush spending all it is given: the stop, the flush
+        and the exit share one deadline. (Its registrar's stop had 2 s of 2.5 and the
+        flush 1 s more: it was killed, "no clean stop"; a pool's managers' stop took 80 %
+        of those 2 s before its registrar's own 2 s as well.)"""
+        sink, provider = f"sink-{uid}", f"api-{uid}"
+
+        def slow_flush(registrar: rr.ResourceRegistrar) -> None:
+            from rr_actors._process import child  # noqa: PLC0415 - in api's process
+
+            _holding_at(sink)(registrar)
+            child._EventLine.flush = lambda _self, timeout: threading.Event().wait(timeout)  # type: ignore[assignment,method-assign,return-value]
+
+        specs = [process(sink, _hanging_unload, shutdown=0.5)]
+        sup = rr.Supervisor([*specs, process(provider, slow_flush, shutdown=2.5)])
+        sup.start()
+        sup.stop()
+
+        assert "exit code 1" == sup.child(provider).last_exit  # it gave up: not killed
+
     def test_a_consumer_left_running_hears_at_once_a_provider_killed_in_a_trees_stop(
         self, process_helpers: SharedObjects, uid: str
     ) -> None:
