@@ -1209,11 +1209,12 @@ def _stopped_beside_edge(
     setup: Callable[[rr.ResourceRegistrar], None],
     *,
     shutdown: float,
+    frozen: bool = False,
 ) -> tuple[str | None, list[str]]:
     """A tree of `sink-{uid}` (its unload hangs) and `api-{uid}` (set up by `setup`, its
-    supervisor's bound `shutdown` seconds), stopped while `edge-{uid}`, a registrar of the
-    tree's carrier in a process of its own, holds an id at `api`: `api`'s last exit, and the
-    status updates `edge` heard of that id (within 30 s of the stop; edge left running)."""
+    supervisor's bound `shutdown` seconds; `frozen`: SIGSTOPped), stopped while `edge-{uid}`,
+    a registrar of the tree's carrier in a process of its own, holds an id at `api`: `api`'s
+    last exit, and the status updates `edge` heard of that id (within 30 s of the stop)."""
     provider, heard = f"api-{uid}", helpers.list()
 
     def on_status(query: rr.Query, update: rr.StatusUpdate) -> None:
@@ -1226,6 +1227,8 @@ def _stopped_beside_edge(
     edge = RemoteRegistrar.start(rr.RegistrarConfig(f"edge-{uid}"), system)
     try:
         edge.call(provider, "echo", "x", on_status=on_status, timeout=30.0)
+        if frozen:  # it cannot stop: killed at its bound
+            os.kill(pid_of(sup, provider), signal.SIGSTOP)
         sup.stop()
         assert wait_for(lambda: len(heard) > 0, 30.0), "edge never heard its provider lost"
         return sup.child(provider).last_exit, list(heard)
@@ -1565,12 +1568,12 @@ class TestAWholeTreesStop:
     ) -> None:
         """The same stop, as a consumer beyond the tree sees it (rule 19): `edge`, a registrar
         of the tree's carrier in a process of its own, holds an id at `api`, killed at its
-        stop's bound (its release at `sink` hangs); `edge` left running hears `api` lost
-        at once: `FATAL` to that id."""
+        stop's bound (SIGSTOPped: its registrar's own stop would give up inside the bound);
+        `edge` left running hears `api` lost at once: `FATAL` to that id."""
         last_exit, heard = _stopped_beside_edge(
-            process_helpers, uid, _holding_at(f"sink-{uid}"), shutdown=0.5
+            process_helpers, uid, _holding_at(f"sink-{uid}"), shutdown=0.5, frozen=True
         )
-        assert "shutdown" != last_exit  # killed, or it gave up its stop
+        assert (last_exit or "").startswith("killed: no clean stop"), last_exit
         assert [f"FATAL api-{uid}/echo"] == heard
 
     def test_a_consumer_left_running_hears_at_once_a_provider_that_gave_up_its_stop(
@@ -1648,8 +1651,8 @@ class TestAWholeTreesStop:
         self, tmp_path: Path, uid: str
     ) -> None:
         """The same stop, as a consumer of the tree stopped after its provider sees it: it
-        hears `api` lost (rule 19) before its own stop (its registrar, ended, hears nothing),
-        from its supervisor."""
+        hears `api` lost (rule 19), killed at its bound (SIGSTOPped), before its own stop
+        (its registrar, ended, hears nothing), from its supervisor."""
         sink, consumer, provider = f"sink-{uid}", f"edge-{uid}", f"api-{uid}"
         heard = tmp_path / "heard"
 
@@ -1674,9 +1677,11 @@ class TestAWholeTreesStop:
         sup = rr.Supervisor([*specs, process(provider, _holding_at(sink), shutdown=0.5)])
         sup.start()
         sup.run_in(consumer, call, timeout=30.0)
+        os.kill(pid_of(sup, provider), signal.SIGSTOP)  # it cannot stop: killed at its bound
         sup.stop()
 
-        assert "shutdown" != sup.child(provider).last_exit  # killed, or it gave up its stop
+        last_exit = sup.child(provider).last_exit or ""
+        assert last_exit.startswith("killed: no clean stop"), last_exit
         assert [provider] == heard.read_text().splitlines()
 
     def test_a_provider_process_releases_a_stale_id_of_its_consumer_stopped_before_it(
