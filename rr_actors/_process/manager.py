@@ -545,8 +545,11 @@ class ManagerProcess:
         self.reported.set()
         for waiting in list(self._syncs.values()):  # nothing more will come
             waiting.set()
-        if self._beat is not None:  # (leaves the pace before a restart's next life joins)
-            self._beat.close()
+        try:
+            if self._beat is not None:  # (leaves the pace before a restart's next life joins)
+                self._beat.close()
+        except Exception:  # (its exit is told all the same, its process released)
+            logger.exception("manager %s: closing its heartbeat raised", self.name)
         try:
             self._on_exit(result)
         except Exception:
