@@ -1563,6 +1563,30 @@ class TestAWholeTreesStop:
 
         assert "exit code 1" == sup.child(provider).last_exit  # it gave up: not killed
 
+    def test_a_pool_whose_registrars_give_up_their_stops_exits_within_its_bound_unkilled(
+        self, uid: str
+    ) -> None:
+        """A pool (its bound 7 s: its manager's `shutdown`, 2 s, plus 5) whose every
+        registrar's stop spends all it is given and gives up: its managers' stop, then its
+        own registrar's, end by one deadline inside the bound, and it exits on its own.
+        (Its managers' stop took 2 s of its registrar's 6, then its registrar 6 s more:
+        killed, "no clean stop within 7 s".)"""
+        name = f"pool-{uid}"
+
+        def gives_up(registrar: rr.ResourceRegistrar) -> None:  # (in the pool's process)
+            def stop(_self: Any, *, timeout: float | None = None) -> None:
+                threading.Event().wait(timeout)
+                raise rr.CallTimeoutError("gave up")
+
+            type(registrar).stop = stop  # type: ignore[method-assign]
+
+        manager = rr.ManagerSpec(f"{name}-m", gives_up, isolation="thread", shutdown=2.0)
+        sup = rr.Supervisor([rr.SupervisorSpec(name, (manager,), isolation="process")])
+        sup.start()
+        sup.stop()
+
+        assert "exit code 1" == sup.child(name).last_exit  # it gave up: not killed
+
     def test_a_consumer_left_running_hears_at_once_a_provider_killed_in_a_trees_stop(
         self, process_helpers: SharedObjects, uid: str
     ) -> None:
