@@ -350,9 +350,10 @@ class ManagerSpec:
         restart: `"permanent"`, `"transient"` (only after an abnormal exit) or `"temporary"`.
         config: its registrar's configuration (same `name`). Default: `RegistrarConfig(name)`,
             with a supervisor's `state_dir` a backup `<state_dir>/<name>.db`, `save_on_modify`.
-        shutdown: seconds a clean stop may take before the manager is killed (a thread's
-            registrar is told to crash once its callback returns; a restart before then
-            fails with `DuplicateNameError`, counted as a crash).
+        shutdown: seconds a clean stop may take before the manager is killed (a process's
+            registrar's own stop ends a fifth of it, 1 s at most, early: it reports and
+            exits within it; a thread's registrar is told to crash once its callback
+            returns, and a restart before then fails with `DuplicateNameError`, a crash).
         heartbeat: seconds between pings to a process manager (`None`: off); none once
             its supervisor's `stop()` began (its `shutdown` bounds its stop). A process
             pings 500 a second at most, all its managers': beyond, a WARNING says how often.

@@ -498,7 +498,12 @@ class _ControlLoop:
         ).start()
 
     def stop(self, message: Stop) -> None:
+        """Exit within `message.timeout` seconds of reading it (its parent kills it then):
+        a pool's managers and its registrar stop by one deadline, a fifth of that (1 s at
+        most) earlier, which leaves its last events, its report and its exit the rest."""
         registrar = self.registrar
+        exit_by = time.monotonic() + message.timeout
+        margin = min(message.timeout / 5, 1.0)
         self.stopping.set()
         if message.restarting:  # stopped to be restarted with its group:
             DIRECTORY.mark_restarting([registrar.name])  # no tombstone: "unavailable"
@@ -506,18 +511,23 @@ class _ControlLoop:
         before_stop = HOOKS.before_stop
         if before_stop is not None:  # a pool: its supervisor stops its managers first
             try:
-                before_stop(message.timeout, message.restarting)
+                before_stop(_left(exit_by - margin), message.restarting)
             except Exception:
                 logger.exception("manager %s: stopping its pool failed", registrar.name)
                 code = 1
         try:
-            registrar.stop(timeout=message.timeout)
+            registrar.stop(timeout=_left(exit_by - margin))
         except RrError:
             logger.exception("manager %s did not stop cleanly", registrar.name)
             code = 1
-        self.line.flush(timeout=1.0)  # its last events (the unloads of its stop) go too
+        self.line.flush(timeout=min(1.0, _left(exit_by - margin / 2)))  # its stop's unloads
         self.control.send(Stopped(code))  # (its supervisor may go on: only the exit is left)
         _exit(code, self.attached)
+
+
+def _left(deadline: float) -> float:
+    """Seconds left until `deadline` (monotonic), at least 1 ms (a stop's is never 0)."""
+    return max(deadline - time.monotonic(), 1e-3)
 
 
 _HANDLERS: dict[type[Any], Callable[[_ControlLoop, Any], None]] = {

@@ -138,7 +138,7 @@ class SyncEvents:
 
 @dataclasses.dataclass(frozen=True, slots=True)
 class Stop:
-    """Stop the registrar within `timeout` seconds and exit (`restarting`: no tombstone)."""
+    """Stop the registrar and exit within `timeout` seconds (`restarting`: no tombstone)."""
 
     timeout: float
     restarting: bool = False

@@ -62,15 +62,19 @@ class Pace:
         """When a ping due at `now` goes (the watcher's thread alone; it is taken)."""
         if self.asked > self.rate and self.beats >= 2 * self.warned:
             with self._lock:  # (a join may race it: checked again, and set, under its lock)
-                if self.asked > self.rate and self.beats >= 2 * self.warned:
-                    self.warned, every = self.beats, self.beats / self.rate
-                    logger.warning(
-                        "%d managers' heartbeats ask for %.0f pings a second, more than the %g "
-                        "this process writes: each is pinged every %.2f s instead, and a hang is "
-                        "found within that and its heartbeat_timeout (a heartbeat of %.2f s or "
-                        "more says so)",
-                        *(self.beats, self.asked, self.rate, every, every),
-                    )
+                beats, asked = self.beats, self.asked
+                warn = asked > self.rate and beats >= 2 * self.warned
+                if warn:
+                    self.warned = beats
+            if warn:  # (logged once it let go of the lock: no join waits on a log handler)
+                every = beats / self.rate
+                logger.warning(
+                    "%d managers' heartbeats ask for %.0f pings a second, more than the %g "
+                    "this process writes: each is pinged every %.2f s instead, and a hang is "
+                    "found within that and its heartbeat_timeout (a heartbeat of %.2f s or "
+                    "more says so)",
+                    *(beats, asked, self.rate, every, every),
+                )
         at = self._next = max(now, self._next)
         self._next += 1.0 / self.rate
         return at

@@ -461,3 +461,22 @@ def test_a_manager_process_is_forked_with_the_empty_catalog_image_already_made()
     finally:
         sup.stop()
     assert [name] == [child.name for child in started]
+
+
+def test_a_stop_with_no_time_left_stops_the_registrar_with_no_config_error(
+    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A `Stop` whose bound ran out (0 s) stops the registrar with the least time a stop
+    takes (1 ms): its deadline passed is not a `timeout=0`, which `ConfigError` rejected,
+    logged as "did not stop cleanly" with its traceback, the exit code 1."""
+    from rr_actors._process import child, control  # noqa: PLC0415 - the module under test
+
+    exits: list[int] = []
+    monkeypatch.setattr(child, "_exit", lambda code, _attached: exits.append(code))
+    registrar = rr.ResourceRegistrar.start("stopped-at-once")
+    line, sent = event_line(hold=0.0)
+    loop = child._ControlLoop(None, sent, registrar, None, threading.Event(), line)  # type: ignore[arg-type]
+    loop.stop(control.Stop(0.0))
+
+    assert ([control.STOPPED_EXIT], []) == (exits, caplog.records)
+    assert not registrar.is_alive()

@@ -711,6 +711,30 @@ def test_a_join_racing_the_first_warning_does_not_make_it_warn_twice() -> None:
     ]
 
 
+def test_a_join_while_the_pace_warns_does_not_wait_on_the_log() -> None:
+    """A manager joins the pace (another thread) while its warning is being logged: the
+    join does not wait for the log's handlers (a slow handler, a file or a socket, held
+    every join and `close` of the process's heartbeats: the warning was logged under the
+    pace's lock). Forced: a handler that waits, bounded, on such a join."""
+    pace, joined, waited = Pace(10.0), threading.Event(), []
+
+    class Joining(logging.Handler):
+        def emit(self, record: logging.LogRecord) -> None:
+            threading.Thread(target=lambda: (pace.join(0.01), joined.set())).start()
+            waited.append(joined.wait(10.0))  # (False: the join waited on this log)
+
+    pace.join(0.01)
+    pace.join(0.01)  # 200 pings a second asked, 10 go
+    handler, log = Joining(), logging.getLogger("rr_actors")
+    log.addHandler(handler)
+    try:
+        pace.slot(0.0)
+    finally:
+        log.removeHandler(handler)
+
+    assert ([True], 3) == (waited, pace.beats)
+
+
 def test_the_pace_warns_again_once_the_beats_doubled_since_its_last_warning() -> None:
     """Each warning says how often each manager is pinged; once the beats doubled that is
     half as often (a hang found twice as late), so it is said again: at 2, 4, 8 managers

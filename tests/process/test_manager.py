@@ -54,6 +54,7 @@ from tests.support.supervising import (
     sigkill,
     wait_gone,
 )
+from tests.support.waiting import wait_for
 
 pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
 
@@ -748,6 +749,44 @@ def test_a_request_sent_while_its_manager_ends_fails_as_a_send_to_a_dead_pipe(ui
 
     assert ended.wait(10)
     assert [False] == sent
+
+
+@pytest.mark.usefixtures("process_helpers")
+def test_a_manager_whose_heartbeat_raises_at_its_close_is_still_told_exited_and_released(
+    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture, uid: str
+) -> None:
+    """Its heartbeat leaves the pace as its exit is seen, before its owner is told: a close
+    that raises (its CPU sampler's file, say) is logged, and its exit told and its process
+    released all the same (the exit's thread ended there: no one heard of the exit)."""
+    from rr_actors._process.heartbeat import Heartbeat  # noqa: PLC0415
+
+    close = Heartbeat.close
+
+    def raising(self: Heartbeat) -> None:
+        close(self)  # (it leaves the process's pace all the same: the next tests' count)
+        raise OSError("closing its sampler failed")
+
+    exits: list[ManagerExit] = []
+    exited = threading.Event()
+    handle = ManagerProcess.start(
+        f"beat-{uid}",
+        cloudpickle.dumps(None),
+        rr.RegistrarConfig(name=f"beat-{uid}"),
+        None,
+        start_timeout=30.0,
+        heartbeat=5.0,
+        heartbeat_timeout=30.0,
+        on_exit=lambda how: (exits.append(how), exited.set()),
+    )
+    monkeypatch.setattr(Heartbeat, "close", raising)
+    os.kill(handle.pid, signal.SIGKILL)
+
+    assert exited.wait(10.0), "its owner never heard of its exit"
+    assert ["killed by SIGKILL"] == [e.reason for e in exits]
+    assert wait_for(lambda: handle.process._closed, 10.0)  # type: ignore[attr-defined]
+    assert ["closing its heartbeat raised"] == [
+        r.getMessage().split(": ", 1)[1] for r in caplog.records if r.levelname == "ERROR"
+    ]
 
 
 @linux_trick
