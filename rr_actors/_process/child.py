@@ -498,9 +498,9 @@ class _ControlLoop:
         ).start()
 
     def stop(self, message: Stop) -> None:
-        """Exit within `message.timeout` seconds of reading it (its parent kills it then):
-        a pool's managers and its registrar stop by one deadline, a fifth of that (1 s at
-        most) earlier, which leaves its last events, its report and its exit the rest."""
+        """Exit within `message.timeout` seconds of reading it (its parent kills it that long
+        after sending it): a pool's managers and its registrar stop by one deadline, a fifth
+        earlier (1 s at most); its last events take half the rest, the pipe's delay the other."""
         registrar = self.registrar
         exit_by = time.monotonic() + message.timeout
         margin = min(message.timeout / 5, 1.0)

@@ -264,11 +264,11 @@ class Heartbeat:
         silence.handled, silence.handled_at, silence.queued = handled, now, queued
 
     def close(self) -> None:
+        pace, self.pace = self.pace, None
+        if pace is not None:  # (first: a sampler whose close raises leaves no beat counted)
+            pace.join(self.period, -1)
         if self.cpu is not None:
             self.cpu.close()
-        if self.pace is not None:
-            self.pace.join(self.period, -1)
-            self.pace = None
 
     def _judge(self, silence: _Silence, now: float) -> Look | Hang | None:
         silent = now - silence.sent

@@ -672,11 +672,11 @@ class ShareRefused(_Numbered):
 
 @_kind
 class ShareAdmitted(_Numbered):
-    """A server admitted a load of `consumer` while other consumers waited for loads there, on
-    the counts of `ShareRefused` (`Admission.refusal`): `since`, when it was first refused (the
-    provider process's `time.monotonic()`, seconds; the admission's time if it was not), and
-    of each other consumer waiting, its loads under way (`waiting`) and when it was first
-    refused (`firsts`, in the same order)."""
+    """A server admitted a load of `consumer` while others waited there (as it decided: one whose
+    request or record then fails is not started), on `ShareRefused`'s counts (`Admission.refusal`):
+    `since`, when it was first refused (the provider process's `time.monotonic()`, seconds; the
+    admission's time if it was not), and of each other consumer waiting, its loads under way
+    (`waiting`) and when it was first refused (`firsts`, in the same order)."""
 
     registrar: str
     server: str

@@ -1289,7 +1289,7 @@ def _share_admitted(
         pytest.param((8, 1, 4, (2,)), id="at-the-bound"),
         pytest.param((5, 1, 3), id="a-share-not-the-bound-among-its-consumers"),
         pytest.param((3, 2, 4, (2,)), id="more-loads-of-its-consumers-than-under-way"),
-        pytest.param((3, 1, 4, ()), id="nobody-waiting"),
+        pytest.param((3, 1, 4, (), 5.0, ()), id="nobody-waiting"),
     ],
 )
 def test_a_load_admitted_past_a_consumers_share_or_the_slot_kept_for_those_waiting_is_found(

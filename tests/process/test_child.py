@@ -474,9 +474,17 @@ def test_a_stop_with_no_time_left_stops_the_registrar_with_no_config_error(
     exits: list[int] = []
     monkeypatch.setattr(child, "_exit", lambda code, _attached: exits.append(code))
     registrar = rr.ResourceRegistrar.start("stopped-at-once")
+    given: list[float | None] = []
+    stop = registrar.stop
+
+    def recorded(timeout: float | None = None) -> None:  # (the least time, but a real stop:
+        given.append(timeout)  # one that took over 1 ms on a loaded machine would be
+        stop(timeout=10.0)  # "not clean", and is not what this test is of)
+
+    monkeypatch.setattr(registrar, "stop", recorded)
     line, sent = event_line(hold=0.0)
     loop = child._ControlLoop(None, sent, registrar, None, threading.Event(), line)  # type: ignore[arg-type]
     loop.stop(control.Stop(0.0))
 
-    assert ([control.STOPPED_EXIT], []) == (exits, caplog.records)
+    assert ([control.STOPPED_EXIT], [], [0.001]) == (exits, caplog.records, given)
     assert not registrar.is_alive()
