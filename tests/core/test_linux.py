@@ -165,11 +165,13 @@ def test_the_time_a_thread_waits_in_state_d_counts_as_waited_and_stays_counted(
             assert time.monotonic() < deadline, f"never in state D: {_states(pid)}"
             select.select([], [], [], 0.01)
         first = watch.sample()
-        between = time.monotonic()
+        between = time.monotonic()  # (after the first sample's reading, before the second's:
+        select.select([], [], [], 0.02)  # the time read after the second, as this read once,
+        before_second = time.monotonic()  # was later than its reading by a preemption)
         second = watch.sample()
         assert first is not None
         assert second is not None
-        assert second.waited - first.waited >= time.monotonic() - between > 0.0
+        assert second.waited - first.waited >= before_second - between > 0.0
 
         os.close(os.open(fifo, os.O_WRONLY))  # the child's open returns: the spawn ends
         assert ours.poll(30)

@@ -558,6 +558,7 @@ class TestAccess:
         for query in queries:
             app.unload(query.id)
 
+    @pytest.mark.timeout(180)  # (5,000 calls and their unloads: over 60 s under CI's load)
     def test_the_memory_of_silent_clients_that_left_is_given_back(
         self, tree: rr.Supervisor
     ) -> None:
