@@ -1221,7 +1221,10 @@ def _stopped_beside_edge(
         heard.append(f"{update.status.name} {update.source}")
 
     system = System.create()
-    specs = [process(f"sink-{uid}", _hanging_unload), process(provider, setup, shutdown=shutdown)]
+    specs = [
+        process(f"sink-{uid}", _hanging_unload),
+        process(provider, setup, shutdown=shutdown, **({"heartbeat": None} if frozen else {})),
+    ]
     sup = rr.Supervisor(specs, network=system)
     sup.start()
     edge = RemoteRegistrar.start(rr.RegistrarConfig(f"edge-{uid}"), system)
@@ -1698,7 +1701,8 @@ class TestAWholeTreesStop:
             registrar.call(provider, "echo", "x", timeout=30.0)
 
         specs = [process(sink, _hanging_unload), process(consumer, setup)]
-        sup = rr.Supervisor([*specs, process(provider, _holding_at(sink), shutdown=0.5)])
+        stopped = process(provider, _holding_at(sink), shutdown=0.5, heartbeat=None)  # (frozen:
+        sup = rr.Supervisor([*specs, stopped])  # killed at its stop, not by its heartbeat before)
         sup.start()
         sup.run_in(consumer, call, timeout=30.0)
         os.kill(pid_of(sup, provider), signal.SIGSTOP)  # it cannot stop: killed at its bound
