@@ -306,7 +306,9 @@ class Facts:
         last_delivery: status id -> the greatest stamp of its deliveries.
         lost: (provider, query id) its consumer reported lost itself (`REPORTED`).
         told_self: (line, consumer, query id) of each `QueryForgotten` of `REPORTED`.
-        outcomes: query id -> `(stamp, answered)` of each `CallAnswered` / `CallFailed`.
+        outcomes: query id -> `(stamp, held)` of each `CallAnswered` / `CallFailed`: whether
+            its caller holds the id after it (answered, or a failed retry of the id it held
+            since its last answer: it still holds it, `retry_failed`).
         fetched: (provider, query id) whose holdings `fetch` needs (listed by a fetch or a
             `ServerQueriesListed`, or answered at a provider fetched from).
         releasing: (consumer, query id) -> the stamp of the consumer's first restore that
@@ -379,7 +381,8 @@ def gather(history: Sequence[Line]) -> Facts:  # noqa: PLR0912, PLR0915 - a bran
             listers.add(event.registrar)
             facts.fetched.update((event.registrar, qid) for qid in event.query_ids)
         elif isinstance(event, events.CallFailed):
-            facts.outcomes.setdefault(event.query_id, []).append((event.hlc, False))
+            calls = facts.outcomes.setdefault(event.query_id, [])
+            calls.append((event.hlc, event.retry and bool(calls) and calls[-1][1]))
         elif isinstance(event, events.QueryForgotten):
             held = (event.serving_rr, event.query_id)
             if held not in facts.forgot:

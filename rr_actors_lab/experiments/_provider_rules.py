@@ -325,7 +325,10 @@ class Providers:
             # before its `ConsumerReleased` was published (the restore shows the commit)
             if self.forgot.get((name, qid), let_go_by) < let_go_by:
                 continue
-            if self.died_before(held.consumer, stamp, held.stamp, qid):
+            # (its forget is shown, after: it lived to let it go, its events were not lost)
+            if (name, qid) not in self.forgot and self.died_before(
+                held.consumer, stamp, held.stamp, qid
+            ):
                 continue
             if self.released_before_kill(name, held.consumer, qid, stamp):
                 continue

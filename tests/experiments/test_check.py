@@ -2033,6 +2033,30 @@ def test_an_answered_id_a_restart_without_a_backup_lost_is_owed_a_fatal() -> Non
     assert {2, 6} == _found(_stamped(again), "kept")
 
 
+def test_a_held_id_whose_retry_failed_as_its_provider_died_is_owed_a_fatal() -> None:
+    # `simnostate` (CI, 2026-11-28; simulated seed 37): cm holds Q1 and calls it again (the
+    # same id); erm (no backup) is killed and the retry fails, which leaves Q1 held (the
+    # consumer's `retry_failed`); the restart lost it, and cm forgot it at its reconcile
+    h = without_backup()
+    failed = dataclasses.replace(_failed(), retry=True)
+    _holds(_stamped([*h[:4], failed, *h[4:]]))
+    untold = [*h[:4], failed, *h[4:7], *h[8:]]  # (no FATAL)
+    assert {2, 6} == _found(_stamped(untold), "kept")
+
+
+def test_an_id_forgotten_untold_at_reconcile_is_lost_though_its_holder_is_killed_later() -> None:
+    # `simnostate` (simulated seed 147): cm forgets Q1 at its reconcile with erm's restart
+    # (no backup), its last event before the restart's first, and is killed later. Its
+    # forget shows it lived to reconcile: no event of its release was lost with it
+    h = without_backup()
+    forgot = events.QueryForgotten("cm", Q1, "erm", "unknown at reconcile", pid=C)
+    restart = events.RegistrarStopped("erm", (), (), (), pid=P + 1, seq=1)
+    killed = [events.ChildExited("sup", "cm", C, "killed by SIGKILL")]
+    later = [events.RegistrarStopped("cm", (), (), (), pid=C + 1)]
+    _holds(_stamped([*h[:4], h[7], forgot, restart, *killed, *later]))
+    assert {2, 6} == _found(_stamped([*h[:4], forgot, restart, *killed, *later]), "kept")
+
+
 def retried_at_the_restart(*, answered: bool) -> list[events.Event]:
     """cm holds Q1 and calls it again (the same id, a workload's `again`) as erm (no backup)
     is killed; the retry reaches the restart, which loads Q1 anew (`answered`) or whose load
@@ -4397,6 +4421,23 @@ def test_each_mutation_real_runs_may_lack_is_caught_on_its_plans_simulated_seed(
     (history,) = check.read_runs(run.history.splitlines()).values()
     mutated = mutate([event for _, event in history])
     assert mutated is not None, f"{mutation} applies to no part of the simulated seed"
+    verdict = check.check(numbered(renumbered(mutated)))
+    assert rule in {f.rule for f in verdict.findings if f.kind == "violation"}
+
+
+@pytest.mark.parametrize("seed", [37, 147])
+def test_a_release_after_reconcile_is_caught_on_simnostate_s_seeds_that_once_hid_it(
+    seed: int,
+) -> None:
+    """Its real runs' shapes (CI, 2026-11-28): the lost id's consumer had a retry of it fail
+    as its provider died (37), or was killed long after forgetting it (147); `kept` took
+    both for ids their consumer let go of."""
+    run = simulate.run_seed(load_plan(plans.find("simnostate")), seed)
+    assert "held" == run.verdict
+    (history,) = check.read_runs(run.history.splitlines()).values()
+    mutate, rule = MUTATIONS["release-after-reconcile"]
+    mutated = mutate([event for _, event in history])
+    assert mutated is not None
     verdict = check.check(numbered(renumbered(mutated)))
     assert rule in {f.rule for f in verdict.findings if f.kind == "violation"}
 
