@@ -7,6 +7,7 @@ results and files; the tests of the same seed and of a cut connection run their 
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import errno
 import functools
@@ -20,7 +21,7 @@ import threading
 import time
 import types
 import urllib.request
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -47,6 +48,7 @@ from rr_actors_lab.experiments._instrument import CUT_SIGNAL
 from rr_actors_lab.experiments._manager_faults import ManagerFaults
 from rr_actors_lab.experiments._procs import processes_with, wait_gone
 from rr_actors_lab.experiments._trigger import Trigger
+from rr_actors_lab.experiments.results import FaultRecord
 from rr_actors_lab.experiments.runner import build_tree, wait_all_serving
 from rr_actors_lab.experiments.schedule import ScheduledFault
 from rr_actors_lab.mission.managers import PROGRAM_SERVER, program_request
@@ -428,38 +430,56 @@ class _ReplacedFirst(Trigger):
         super().send(due, signum, pidfd, on_sent)
 
 
+KILL_ERM = ScheduledFault(fault=0, n=0, kind="kill_resource", target="erm", at=0.0, pick=0.0)
+"""A `kill_resource` of erm, due at once (`ERM_ONLY` plans no fault: the tests fire this)."""
+
+
+@contextlib.contextmanager
+def _erm_holding_a_lidar(
+    bus: Path,
+) -> Iterator[tuple[rr.ResourceRegistrar, rr.Query, Callable[[Callable[[], None]], FaultRecord]]]:
+    """The tree of `ERM_ONLY`, whose `app` holds a LiDAR of erm (on `bus`); yields `app`,
+    that LiDAR's query and `kill(race)`: a `kill_resource` of erm fired by `ManagerFaults`,
+    whose trigger runs `race` first (`_ReplacedFirst`), and the one record it left."""
+    plan = parse_plan(ERM_ONLY)
+    with build_tree(plan, None) as sup:
+        app = sup.registrar(rr.RegistrarConfig("app", call_timeout=20.0))
+
+        def kill(race: Callable[[], None]) -> FaultRecord:
+            trigger, log = _ReplacedFirst(race), FaultLog()
+            agenda = Agenda(lambda exc, left: None)
+            faults = ManagerFaults(
+                sup, plan, time.monotonic(), agenda=agenda, log=log, trigger=trigger
+            )
+            try:
+                faults.fire(KILL_ERM, 0.0)
+            finally:
+                trigger.close(timeout=10)
+            (record,) = log.records
+            return record
+
+        yield app, app.call("erm", PROGRAM_SERVER, _lidar(bus, "lidar-a")), kill
+
+
+def _lidar(bus: Path, name: str) -> dict[str, Any]:
+    """A request of erm's program server: LiDAR `name` on `bus` (a process to kill)."""
+    return program_request("lidar", name, str(bus), watch_pid=os.getpid(), rate=5.0, seed=0)
+
+
 def test_a_resource_process_replaced_between_its_read_and_the_kill_is_not_what_is_killed(
     tmp_path: Path,
 ) -> None:
     """The every-fault run's `kill_resource` was once skipped, "pid ... had just exited
     (ESRCH)": the LiDAR it read was unloaded before the kill, and the next one loaded. Forced
     here: the injector aims at the process that replaced it (`_manager_faults`)."""
-    plan = parse_plan(ERM_ONLY)
-    bus = str(tmp_path / "bus")
-
-    def lidar(name: str) -> dict[str, Any]:
-        return program_request("lidar", name, bus, watch_pid=os.getpid(), rate=5.0, seed=0)
-
-    sup = build_tree(plan, None)
-    with sup:
-        app = sup.registrar(rr.RegistrarConfig("app", call_timeout=20.0))
-        first = app.call("erm", PROGRAM_SERVER, lidar("lidar-a"))
+    with _erm_holding_a_lidar(tmp_path / "bus") as (app, first, kill):
         replaced: list[rr.Query] = []
 
         def replace() -> None:  # unload returns once the process has exited (reaped)
             app.unload(first.id)
-            replaced.append(app.call("erm", PROGRAM_SERVER, lidar("lidar-b")))
+            replaced.append(app.call("erm", PROGRAM_SERVER, _lidar(tmp_path / "bus", "lidar-b")))
 
-        trigger = _ReplacedFirst(replace)
-        log = FaultLog()
-        agenda = Agenda(lambda exc, left: None)
-        faults = ManagerFaults(sup, plan, time.monotonic(), agenda=agenda, log=log, trigger=trigger)
-        kill = ScheduledFault(fault=0, n=0, kind="kill_resource", target="erm", at=0.0, pick=0.0)
-        try:
-            faults.fire(kill, 0.0)
-        finally:
-            trigger.close(timeout=10)
-        (record,) = log.records
+        record = kill(replace)
         second = replaced[0].response
 
         assert not record.skipped, record
@@ -475,16 +495,7 @@ def test_a_kill_resource_whose_aim_again_fails_is_recorded_skipped_saying_why(
 ) -> None:
     """Aiming again runs on the trigger's reader thread: an error there (the tree stopping,
     no descriptor left) is the fault's record, skipped, not a log line and no record."""
-    plan = parse_plan(ERM_ONLY)
-    bus = str(tmp_path / "bus")
-    sup = build_tree(plan, None)
-    with sup:
-        app = sup.registrar(rr.RegistrarConfig("app", call_timeout=20.0))
-        first = app.call(
-            "erm",
-            PROGRAM_SERVER,
-            program_request("lidar", "lidar-a", bus, watch_pid=os.getpid(), rate=5.0, seed=0),
-        )
+    with _erm_holding_a_lidar(tmp_path / "bus") as (app, first, kill):
 
         def unload_then_fail() -> None:
             app.unload(first.id)  # (returns once the process exited: the kill finds none)
@@ -494,24 +505,7 @@ def test_a_kill_resource_whose_aim_again_fails_is_recorded_skipped_saying_why(
 
             monkeypatch.setattr(_manager_faults, "resource_processes", no_descriptor)
 
-        trigger = _ReplacedFirst(unload_then_fail)
-        log = FaultLog()
-        faults = ManagerFaults(
-            sup,
-            plan,
-            time.monotonic(),
-            agenda=Agenda(lambda exc, left: None),
-            log=log,
-            trigger=trigger,
-        )
-        try:
-            faults.fire(
-                ScheduledFault(fault=0, n=0, kind="kill_resource", target="erm", at=0.0, pick=0.0),
-                0.0,
-            )
-        finally:
-            trigger.close(timeout=10)
-        (record,) = log.records
+        record = kill(unload_then_fail)
 
         assert record.skipped
         assert "aiming again: [Errno 24] Too many open files" == record.detail

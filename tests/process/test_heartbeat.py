@@ -24,7 +24,6 @@ from collections.abc import Callable, Iterator
 from multiprocessing.connection import Connection
 from typing import Any
 
-import cloudpickle
 import pytest
 
 import rr_actors as rr
@@ -32,14 +31,10 @@ from rr_actors import events
 from rr_actors._platform.base import CpuSample
 from rr_actors._process.control import Events, Ping, Pong, Ready, Stop, mp_context, start_forkserver
 from rr_actors._process.heartbeat import PACE, STARVED_LIMIT, Hang, Heartbeat, Late, Look, Pace
-from rr_actors._process.manager import ManagerExit, ManagerProcess
+from rr_actors._process.manager import ManagerProcess
 from rr_actors.testing import SharedObjects, run_on_actor
 from tests.support.starving import busy_cpu, pinned, starved
-from tests.support.supervising import (
-    linux_trick,
-    pid_of,
-    process,
-)
+from tests.support.supervising import bare_manager, linux_trick, pid_of, process
 
 pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="Linux scheduling")
 
@@ -238,8 +233,7 @@ def test_an_answer_that_came_while_the_watcher_was_held_up_is_read_before_any_ju
     # CPU, for the GIL) while the answer to the ping in flight waits in the pipe. That
     # answer counts: the manager answered at once.
     bound = 0.5
-    exited: list[ManagerExit] = []
-    outcome = threading.Event()
+    outcome = threading.Event()  # (set at its exit too)
 
     def on_events(batch: list[Any]) -> None:
         if "hold" in batch:
@@ -247,28 +241,17 @@ def test_an_answer_that_came_while_the_watcher_was_held_up_is_read_before_any_ju
         if "later" in batch:
             outcome.set()  # two more pings were answered since
 
-    def on_exit(how: ManagerExit) -> None:
-        exited.append(how)
-        outcome.set()
-
-    handle = ManagerProcess.start(
+    with bare_manager(
         f"held-{uid}",
-        cloudpickle.dumps(None),
-        rr.RegistrarConfig(name=f"held-{uid}"),
-        None,
-        start_timeout=30.0,
         heartbeat=0.1,
         heartbeat_timeout=bound,
-        on_exit=on_exit,
-        spare=_Scripted(),  # type: ignore[arg-type]
+        exited=outcome,
+        spare=_Scripted(),
         forward_events=True,
         on_events=on_events,
-    )
-    try:
+    ) as (_, exits, _):
         assert outcome.wait(20.0)
-        assert [] == exited
-    finally:
-        handle.stop(5.0)
+        assert [] == exits
 
 
 # -- the judgement's arithmetic -----------------------------------------------------------------

@@ -28,7 +28,6 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-import cloudpickle
 import pytest
 
 import rr_actors as rr
@@ -37,7 +36,7 @@ from rr_actors import testing
 from rr_actors._process import manager
 from rr_actors._process.control import Events, Failed, forker_pid, mp_context, start_forkserver
 from rr_actors._process.heartbeat import PINGS_PER_SECOND, Pace
-from rr_actors._process.manager import ManagerExit, ManagerProcess, _await_ready
+from rr_actors._process.manager import _await_ready
 from rr_actors._process.spare import Spare
 from rr_actors._process.tally import Received
 from rr_actors.testing import RemoteRegistrar, SharedObjects
@@ -45,6 +44,7 @@ from tests.support.heard import events_of
 from tests.support.supervising import (
     ManualTimer,
     alive,
+    bare_manager,
     echo_setup,
     kill_and_wait_restarted,
     killed_owner,
@@ -722,32 +722,23 @@ def test_a_request_sent_while_its_manager_ends_fails_as_a_send_to_a_dead_pipe(ui
     # its owner sends it `Stop`: the watcher thread closed the pipe in the middle of the
     # write, which then wrote to no descriptor (a TypeError, not the OSError `_send`
     # turns into False: `RemoteRegistrar.stop` raised it).
-    pickling, ended = threading.Event(), threading.Event()
-    handle = ManagerProcess.start(
-        f"ends-{uid}",
-        cloudpickle.dumps(None),
-        rr.RegistrarConfig(name=f"ends-{uid}"),
-        None,
-        start_timeout=30.0,
-        heartbeat=None,
-        heartbeat_timeout=None,
-        on_exit=lambda _how: ended.set(),
-    )
+    pickling = threading.Event()
     sent: list[object] = []
+    with bare_manager(f"ends-{uid}") as (handle, _, ended):
 
-    def send() -> None:
-        try:
-            sent.append(handle._send(_PickledSlowly(pickling, ended)))  # type: ignore[arg-type]
-        except Exception as exc:
-            sent.append(exc)
+        def send() -> None:
+            try:
+                sent.append(handle._send(_PickledSlowly(pickling, ended)))  # type: ignore[arg-type]
+            except Exception as exc:
+                sent.append(exc)
 
-    sender = threading.Thread(target=send)
-    sender.start()
-    assert pickling.wait(10)
-    os.kill(handle.pid, signal.SIGKILL)
-    sender.join(10)
+        sender = threading.Thread(target=send)
+        sender.start()
+        assert pickling.wait(10)
+        os.kill(handle.pid, signal.SIGKILL)
+        sender.join(10)
 
-    assert ended.wait(10)
+        assert ended.wait(10)
     assert [False] == sent
 
 
@@ -766,24 +757,14 @@ def test_a_manager_whose_heartbeat_raises_at_its_close_is_still_told_exited_and_
         close(self)  # (it leaves the process's pace all the same: the next tests' count)
         raise OSError("closing its sampler failed")
 
-    exits: list[ManagerExit] = []
-    exited = threading.Event()
-    handle = ManagerProcess.start(
-        f"beat-{uid}",
-        cloudpickle.dumps(None),
-        rr.RegistrarConfig(name=f"beat-{uid}"),
-        None,
-        start_timeout=30.0,
-        heartbeat=5.0,
-        heartbeat_timeout=30.0,
-        on_exit=lambda how: (exits.append(how), exited.set()),
-    )
-    monkeypatch.setattr(Heartbeat, "close", raising)
-    os.kill(handle.pid, signal.SIGKILL)
+    beating = bare_manager(f"beat-{uid}", heartbeat=5.0, heartbeat_timeout=30.0)
+    with beating as (handle, exits, exited):
+        monkeypatch.setattr(Heartbeat, "close", raising)
+        os.kill(handle.pid, signal.SIGKILL)
 
-    assert exited.wait(10.0), "its owner never heard of its exit"
-    assert ["killed by SIGKILL"] == [e.reason for e in exits]
-    assert wait_for(lambda: handle.process._closed, 10.0)  # type: ignore[attr-defined]
+        assert exited.wait(10.0), "its owner never heard of its exit"
+        assert ["killed by SIGKILL"] == [e.reason for e in exits]
+        assert wait_for(lambda: handle.process._closed, 10.0)  # type: ignore[attr-defined]
     assert ["closing its heartbeat raised"] == [
         r.getMessage().split(": ", 1)[1] for r in caplog.records if r.levelname == "ERROR"
     ]
@@ -801,27 +782,16 @@ def test_a_killed_manager_is_seen_dead_without_waiting_for_the_forkserver_to_rea
     forker = forker_pid(ctx)
     if forker is None or forker == os.getpid():
         pytest.skip("needs the forkserver start method")
-    exits: list[ManagerExit] = []
-    exited = threading.Event()
-    handle = ManagerProcess.start(
-        f"reap-{uid}",
-        cloudpickle.dumps(None),
-        rr.RegistrarConfig(name=f"reap-{uid}"),
-        None,
-        start_timeout=30.0,
-        heartbeat=None,
-        heartbeat_timeout=None,
-        on_exit=lambda how: (exits.append(how), exited.set()),
-    )
-    os.kill(forker, signal.SIGSTOP)
-    try:
-        os.kill(handle.pid, signal.SIGKILL)
-        seen = exited.wait(10.0)
-    finally:
-        os.kill(forker, signal.SIGCONT)
-    assert seen, "the exit was seen only once the forkserver reaped the manager"
-    assert [(e.reason, e.normal) for e in exits] == [("killed by SIGKILL", False)]
-    assert wait_gone([handle.pid]) == []
+    with bare_manager(f"reap-{uid}") as (handle, exits, exited):
+        os.kill(forker, signal.SIGSTOP)
+        try:
+            os.kill(handle.pid, signal.SIGKILL)
+            seen = exited.wait(10.0)
+        finally:
+            os.kill(forker, signal.SIGCONT)
+        assert seen, "the exit was seen only once the forkserver reaped the manager"
+        assert [(e.reason, e.normal) for e in exits] == [("killed by SIGKILL", False)]
+        assert wait_gone([handle.pid]) == []
 
 
 def test_call_with_retry_works_for_a_consumer_registrar_in_another_manager_process(

@@ -3,14 +3,13 @@
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any
 
 import pytest
 
 import rr_actors as rr
 from rr_actors import events
 from rr_actors._process import child
-from rr_actors._process.spare import SparePool
+from rr_actors._process.spare import Spare, SparePool
 from rr_actors._store import schema
 from tests.support.supervising import kill_and_wait_restarted, process
 from tests.support.waiting import wait_for
@@ -24,9 +23,10 @@ def wait_until(condition: Callable[[], bool], what: str) -> None:
     assert wait_for(condition, timeout=BOUND), what
 
 
-def idle(pool: SparePool) -> int:
+def idle(pool: SparePool) -> list[Spare]:
+    """Its idle spares, oldest first (its private fields: no runtime code needs a public view)."""
     with pool._cond:
-        return len(pool._idle)
+        return list(pool._idle)
 
 
 class TestStartAhead:
@@ -47,7 +47,7 @@ class TestStartAhead:
             assert pool.take() is None  # the one start launches its own process
             pool.ahead(0)
 
-            assert 0 == idle(pool)
+            assert [] == idle(pool)
         finally:
             pool.close()
 
@@ -57,9 +57,8 @@ class TestStartAhead:
         pool = SparePool(2, "ahead-three", delay=3600.0)
         try:
             pool.ahead(3)  # three starts: spares for the second and the third
-            wait_until(lambda: idle(pool) == 2, "two spares forked ahead")
-            with pool._cond:
-                spares = list(pool._idle)
+            wait_until(lambda: len(idle(pool)) == 2, "two spares forked ahead")
+            spares = idle(pool)
             assert [True, True] == [s.lean for s in spares]  # (not warming up)
 
             pool.ahead(0)  # the start is over: they warm up now, for a restart
@@ -96,13 +95,8 @@ def test_a_manager_a_spare_runs_after_a_kill_numbers_its_events(
     sup = supervisors([process(name)]).start()
     pool = sup._tree.processes.spares
     assert pool is not None
-
-    def spares() -> list[Any]:
-        with pool._cond:
-            return list(pool._idle)
-
-    wait_until(lambda: any(s.check_warm() for s in spares()), "a warm spare")
-    idling = {s.process.pid for s in spares()}  # (the oldest warm one is taken: any of them)
+    wait_until(lambda: any(s.check_warm() for s in idle(pool)), "a warm spare")
+    idling = {s.process.pid for s in idle(pool)}  # (the oldest warm one is taken: any of them)
     kill_and_wait_restarted(sup, name)
 
     assert sup.child(name).pid in idling  # (the restart ran in a spare)

@@ -7,6 +7,7 @@ tests hold the watcher to what those threads did, among many managers at once.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import sys
@@ -15,14 +16,13 @@ from collections.abc import Callable
 from multiprocessing.connection import Connection
 from typing import Any
 
-import cloudpickle
 import pytest
 
 import rr_actors as rr
 from rr_actors._process.control import Ping, Pong, Ready, Stop, mp_context, start_forkserver
 from rr_actors._process.manager import ManagerExit, ManagerProcess
 from rr_actors._process.watcher import ROUND, Watcher
-from tests.support.supervising import pid_of, process
+from tests.support.supervising import bare_manager, pid_of, process
 
 pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
 
@@ -126,44 +126,26 @@ class _Double:
         return True
 
 
-def start_double(name: str, exits: dict[str, Any], *, garbage: bool) -> ManagerProcess:
-    ended = exits[name] = [threading.Event(), None]
-
-    def on_exit(how: ManagerExit) -> None:
-        ended[1] = how
-        ended[0].set()
-
-    return ManagerProcess.start(
-        name,
-        cloudpickle.dumps(None),
-        rr.RegistrarConfig(name=name),
-        None,
-        start_timeout=30.0,
-        heartbeat=0.1,
-        heartbeat_timeout=2.0,
-        on_exit=on_exit,
-        spare=_Double(garbage=garbage),  # type: ignore[arg-type]
-    )
+def start_double(
+    name: str, *, garbage: bool
+) -> contextlib.AbstractContextManager[tuple[ManagerProcess, list[ManagerExit], threading.Event]]:
+    """`bare_manager` `name`, whose process is a `double` (pings every 0.1 s, hung after 2 s)."""
+    return bare_manager(name, heartbeat=0.1, heartbeat_timeout=2.0, spare=_Double(garbage=garbage))
 
 
 def test_a_manager_whose_watch_raises_is_killed_and_reported_while_the_others_are_still_watched(
     uid: str, caplog: pytest.LogCaptureFixture
 ) -> None:
-    exits: dict[str, Any] = {}
-    good = start_double(f"good-{uid}", exits, garbage=False)
-    try:
-        bad = start_double(f"bad-{uid}", exits, garbage=True)
-        assert exits[bad.name][0].wait(20.0)
+    with (
+        start_double(f"good-{uid}", garbage=False) as (good, good_exits, good_exited),
+        start_double(f"bad-{uid}", garbage=True) as (bad, bad_exits, bad_exited),
+    ):
+        assert bad_exited.wait(20.0)
         os.kill(good.pid, signal.SIGKILL)  # what the watch sees now: the others' still goes on
-        assert exits[good.name][0].wait(20.0)
-    finally:
-        good.stop(5.0)
+        assert good_exited.wait(20.0)
 
-    assert (False, True) == (
-        exits[bad.name][1].normal,
-        "its watch failed" in exits[bad.name][1].reason,
-    )
-    assert "killed by SIGKILL" == exits[good.name][1].reason
+    assert [(False, True)] == [(e.normal, "its watch failed" in e.reason) for e in bad_exits]
+    assert ["killed by SIGKILL"] == [e.reason for e in good_exits]
     assert any(f"watching manager {bad.name} failed" in r.getMessage() for r in caplog.records)
 
 

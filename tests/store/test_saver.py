@@ -510,23 +510,7 @@ def test_a_staged_turn_that_adds_or_releases_one_consumer_writes_one_statement_w
 
     store = SqliteStore.open(tmp_path / "p.db")
     saver = _persistence.Saver(store, rr.RegistrarConfig(name=unique("S"), save_on_modify=True))
-    catalog = Catalog()
-    catalog.begin_load("r1", "leaf", 1)
-    catalog.finish_load("r1", "loaded")
-    for n in range(100):
-        catalog.add_consumer("r1", f"h{n}", "C")
-    saver.stage(catalog.drain_changes())
-    saver.write()
-    resource = catalog.resources["r1"]
-    resource.consumers = Unwalked(resource.consumers)
-    statements: list[str] = []
-    store._db.set_trace_callback(statements.append)
-
-    catalog.add_consumer("r1", "new", "C")
-    saver.stage(catalog.drain_changes())
-    catalog.release("h0")
-    saver.stage(catalog.drain_changes())
-    saver.write()
+    statements = one_added_one_released(store, 100, saver.stage, saver.write)
     saver.close(erase=False)
 
     assert [
@@ -568,26 +552,41 @@ class Unwalked(dict[str, str]):
     __iter__ = keys = values = items = walked
 
 
+def one_added_one_released(
+    store: SqliteStore,
+    holders: int,
+    stage: Callable[[Changes], None],
+    write: Callable[[], None] = lambda: None,
+) -> list[str]:
+    """The SQL statements `store` ran while consumer `new` of r1 was added, then `h0`
+    released: r1 loaded and held by `holders` consumers `h<n>` (staged and written first),
+    its consumers `Unwalked`; each change staged, then one `write` (the turn's end)."""
+    catalog = Catalog()
+    catalog.begin_load("r1", "leaf", 1)
+    catalog.finish_load("r1", "loaded")
+    for n in range(holders):
+        catalog.add_consumer("r1", f"h{n}", "C")
+    stage(catalog.drain_changes())
+    write()
+    resource = catalog.resources["r1"]
+    resource.consumers = Unwalked(resource.consumers)
+    statements: list[str] = []
+    store._db.set_trace_callback(statements.append)
+    catalog.add_consumer("r1", "new", "C")
+    stage(catalog.drain_changes())
+    catalog.release("h0")
+    stage(catalog.drain_changes())
+    write()
+    return statements
+
+
 @pytest.mark.parametrize("holders", [1, 1000])
 def test_a_write_that_adds_or_releases_one_consumer_is_one_statement_whatever_the_holders(
     tmp_path: Path, holders: int
 ) -> None:
     path = tmp_path / "p.db"
-    store, catalog = new_store(path)
-    catalog.begin_load("r1", "leaf", 1)
-    catalog.finish_load("r1", "loaded")
-    for n in range(holders):
-        catalog.add_consumer("r1", f"h{n}", "C")
-    store.write(catalog.drain_changes())
-    resource = catalog.resources["r1"]
-    resource.consumers = Unwalked(resource.consumers)
-    statements: list[str] = []
-    store._db.set_trace_callback(statements.append)
-
-    catalog.add_consumer("r1", "new", "C")
-    store.write(catalog.drain_changes())
-    catalog.release("h0")
-    store.write(catalog.drain_changes())
+    store, _ = new_store(path)
+    statements = one_added_one_released(store, holders, store.write)
     store.close(erase=False)
 
     inserted = f"VALUES (1, {holders + 2}, 'new', 'C')"

@@ -1,5 +1,6 @@
-"""Helpers of the supervisor tests: a clock and a timer driven by hand, process facts, and
-the kill scaffold (`sigkill`, `kill_and_wait_restarted`, `crash` for a thread manager)."""
+"""Helpers of the supervisor tests: a clock and a timer driven by hand, process facts, the
+kill scaffold (`sigkill`, `kill_and_wait_restarted`, `crash` for a thread manager), and a
+manager process started without a supervisor (`bare_manager`)."""
 
 from __future__ import annotations
 
@@ -17,11 +18,13 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
+import cloudpickle
 import pytest
 
 import rr_actors as rr
 from rr_actors import testing
 from rr_actors._platform import PLATFORM
+from rr_actors._process.manager import ManagerExit, ManagerProcess
 from tests.support import selecting
 
 linux_trick = pytest.mark.skipif(
@@ -198,6 +201,39 @@ def killed_owner(uid: str, tmp_path: Path, *, heartbeat: bool = True) -> Iterato
         if owner.stdout is not None:
             owner.stdout.close()
         shutil.rmtree(runtime_parent, ignore_errors=True)
+
+
+@contextlib.contextmanager
+def bare_manager(
+    name: str,
+    *,
+    heartbeat: float | None = None,
+    heartbeat_timeout: float | None = None,
+    exited: threading.Event | None = None,
+    **options: Any,
+) -> Iterator[tuple[ManagerProcess, list[ManagerExit], threading.Event]]:
+    """Manager process `name` (no setup) started by `ManagerProcess.start` itself, no
+    supervisor; yields it, the exits its owner was told (in order) and `exited` (a new
+    event by default), set at each; then stops it (5 s, then killed: none outlives the test).
+
+    `options`: more of `ManagerProcess.start`'s (`spare`, `on_events`, ...); seconds."""
+    exits: list[ManagerExit] = []
+    told = threading.Event() if exited is None else exited
+    handle = ManagerProcess.start(
+        name,
+        cloudpickle.dumps(None),
+        rr.RegistrarConfig(name=name),
+        None,
+        start_timeout=30.0,
+        heartbeat=heartbeat,
+        heartbeat_timeout=heartbeat_timeout,
+        on_exit=lambda how: (exits.append(how), told.set()),
+        **options,
+    )
+    try:
+        yield handle, exits, told
+    finally:
+        handle.stop(5.0)
 
 
 def logging_consumer(provider: str, events: list[str]) -> Callable[[rr.ResourceRegistrar], None]:
