@@ -359,6 +359,40 @@ def validate(path: Path, *, tidy: bool) -> int:
         return schema.schema_version(db, name)
 
 
+@contextlib.contextmanager
+def inspected(path: Path, *, unpickle: bool) -> Iterator[tuple[sqlite3.Connection, int]]:
+    """The backup at `path` for inspection (`read_backup`), never changed: validated, read
+    only, its pages checked, an older schema migrated in a copy in memory; with its schema
+    version. What the body raises of SQLite, unpickling or a row check: `as_corrupt`.
+
+    Raises:
+        ConfigError: no file at `path`; with `unpickle`, it belongs to another user.
+        CatalogCorruptError: the file is not a readable rr_actors catalog.
+    """
+    if not is_file(path):
+        raise ConfigError(f"no catalog backup at {str(path)!r}")
+    foreign = foreign_owner(path) if unpickle else None
+    if foreign is not None:
+        raise ConfigError(
+            f"catalog backup {foreign}: reading its values would run code from it "
+            "(unpickling); `rr-actors observe --state` and `graph --state` show it "
+            "without unpickling anything"
+        )
+    version, name = validate(path, tidy=True), str(path)
+    with as_corrupt(name), read_only(path, tidy=True) as db:
+        check_pages(db, name)
+        if version == schema.SCHEMA_VERSION:
+            yield db, version
+            return
+        copy = sqlite3.connect(":memory:", isolation_level=None)
+        try:
+            db.backup(copy)
+            schema.migrate(copy, version)
+            yield copy, version
+        finally:
+            copy.close()
+
+
 def prepare(db: sqlite3.Connection, name: str, durability: str, version: int) -> None:
     try:
         db.execute("BEGIN IMMEDIATE")  # can we write here at all?

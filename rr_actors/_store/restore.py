@@ -33,7 +33,7 @@ from rr_actors._catalog import NO_DIGEST, ClientRecord, Listing, Resource
 from rr_actors._store import files, schema
 from rr_actors._store.schema import Mirror
 from rr_actors._types import Query
-from rr_actors.errors import CatalogCorruptError, ConfigError, RegistrarStoppedError
+from rr_actors.errors import CatalogCorruptError, RegistrarStoppedError
 
 RESOURCE_COLUMNS = (
     "seq, id, server, state, digest, request, response, request_text, response_text, label, failed"
@@ -270,7 +270,7 @@ class Unread:
                 row = db.execute(_RESOURCE_BY_SEQ, (seq,)).fetchone()
                 if row is None:
                     continue
-                schema.check_row(row)
+                schema.check_rows([row])
                 read.append((row, db.execute(CONSUMERS_OF, (seq,)).fetchall()))
         resources = [store.adopt(row, consumers) for row, consumers in read]
         self._read.update(row[0] for row, _ in read)
@@ -311,9 +311,7 @@ def read_at_once(
         more = db.execute(  # (at most len(rows) + 1 keys)
             "SELECT seq FROM resources ORDER BY seq LIMIT ?", (len(rows) + 1,)
         ).fetchall()
-        for row in rows:
-            schema.check_row(row)
-        schema.check_keys([], [], client_rows)
+        schema.check_rows(rows, [], client_rows)
         with_consumers = [(row, db.execute(CONSUMERS_OF, (row[0],)).fetchall()) for row in rows]
     finally:
         db.execute("COMMIT")
@@ -363,25 +361,10 @@ def read_backup(path: str | os.PathLike[str], *, unpickle: bool = True) -> Backu
         CatalogCorruptError: the file is not a readable rr_actors catalog.
     """
     file = Path(os.fspath(path))
-    if not files.is_file(file):
-        raise ConfigError(f"no catalog backup at {str(file)!r}")
-    if unpickle:
-        foreign = files.foreign_owner(file)
-        if foreign is not None:
-            raise ConfigError(
-                f"catalog backup {foreign}: reading its values would run code from it "
-                "(unpickling); `rr-actors observe --state` and `graph --state` show it "
-                "without unpickling anything"
-            )
-    version = files.validate(file, tidy=True)
-    name = str(file)
-    with schema.as_corrupt(name), files.read_only(file, tidy=True) as db:
-        files.check_pages(db, name)
-        with _migrated_copy(db, version) as current, gc_paused():
-            rows = read_rows(
-                current, schema.lenient_decode if unpickle else schema.not_unpickled, lenient=True
-            )
-    return Backup(name, version, rows.resources, rows.clients)
+    with files.inspected(file, unpickle=unpickle) as (db, version), gc_paused():
+        decode = schema.lenient_decode if unpickle else schema.not_unpickled
+        rows = read_rows(db, decode, lenient=True)
+    return Backup(str(file), version, rows.resources, rows.clients)
 
 
 @contextlib.contextmanager
@@ -423,10 +406,7 @@ def read_rows(
         client_rows = db.execute(CLIENTS).fetchall()
     finally:
         db.execute("COMMIT")
-    if not lenient:
-        for row in rows:
-            schema.check_values(row)
-    schema.check_keys(rows, consumer_rows, client_rows)
+    schema.check_rows(rows, consumer_rows, client_rows, values=not lenient)
     encoded = Resource.encoded
     states = schema.STATES_BY_CODE
     resources = [
@@ -479,18 +459,3 @@ def read_rows(
     max_seq = max([max_seq, *client_seqs.values()])
     mirror = {r.id: m for r, m in zip(resources, mirrors, strict=True)}
     return Rows(resources, clients, mirror, client_seqs, max_seq)
-
-
-@contextlib.contextmanager
-def _migrated_copy(db: sqlite3.Connection, version: int) -> Iterator[sqlite3.Connection]:
-    """`db` itself if it has the current schema, else a migrated copy in memory."""
-    if version == schema.SCHEMA_VERSION:
-        yield db
-        return
-    copy = sqlite3.connect(":memory:", isolation_level=None)
-    try:
-        db.backup(copy)
-        schema.migrate(copy, version)
-        yield copy
-    finally:
-        copy.close()

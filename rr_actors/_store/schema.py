@@ -5,7 +5,7 @@ row's values are encoded, decoded and cheaply checked, and the statements a writ
  empty file --MIGRATIONS[0]--> v1 --MIGRATIONS[1]--> v2 --MIGRATIONS[2]--> v3 --MIGRATIONS[3]--> v4
    --MIGRATIONS[4]--> v5 --MIGRATIONS[5]--> v6 --MIGRATIONS[6]--> v7 (SCHEMA_VERSION)
  request / response --dumps--> cloudpickle bytes (NULL for None) --> resources / clients row
- row --check_row / check_keys (no unpickling)--> Resource.encoded --decode, on first use--> value
+ row --check_rows (no unpickling)--> Resource.encoded --decode, on first use--> value
  Changes (rid -> Resource | None, qid -> ClientRecord | None, rid -> the consumer ids added
    or released since the last write) --plan_resource / plan_client, against the mirror of
    what the store last wrote--> [(sql, params), ...] and the mirror entries to set once
@@ -31,7 +31,7 @@ import dataclasses
 import functools
 import pickle
 import sqlite3
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from typing import Any
 
 from rr_actors._catalog import (
@@ -373,30 +373,22 @@ def _not_a_pickle(blob: bytes | None) -> bool:
     )
 
 
-def check_values(row: Any) -> None:
-    """Raise `ValueError` if a resource row's request or response cannot be a pickle (a cheap
-    check of what a restore leaves encoded)."""
-    if _not_a_pickle(row[5]) or _not_a_pickle(row[6]):
-        raise ValueError(f"the stored request or response of resource {row[1]} is not a pickle")
-
-
-def _check_state(row: Any) -> None:
-    state = row[3]
-    if type(state) is not int or not 0 <= state < len(STATES_BY_CODE):
-        raise ValueError(f"resource {row[1]} has an unknown state {state!r}")
-
-
-def check_row(row: Any) -> None:
-    """Raise `ValueError` if a resource row has an unknown state or a value is no pickle."""
-    _check_state(row)
-    check_values(row)
-
-
-def check_keys(rows: list[Any], consumer_rows: list[Any], client_rows: list[Any]) -> None:
-    """Raise `ValueError` for a duplicate id (it would replace the first silently) or an
-    unknown state code."""
+def check_rows(
+    rows: list[Any],
+    consumer_rows: Sequence[Any] = (),
+    client_rows: Sequence[Any] = (),
+    *,
+    values: bool = True,
+) -> None:
+    """Raise `ValueError` for a resource row with an unknown state or (`values`) a request
+    or response that cannot be a pickle (a cheap check of what a restore leaves encoded),
+    or for an id stored twice (it would replace the first silently)."""
     for row in rows:
-        _check_state(row)
+        state = row[3]
+        if type(state) is not int or not 0 <= state < len(STATES_BY_CODE):
+            raise ValueError(f"resource {row[1]} has an unknown state {state!r}")
+        if values and (_not_a_pickle(row[5]) or _not_a_pickle(row[6])):
+            raise ValueError(f"the stored request or response of resource {row[1]} is not a pickle")
     for what, ids in (
         ("resource id", [row[1] for row in rows]),
         ("consumer query id", [row[1] for row in consumer_rows]),
