@@ -5,7 +5,7 @@ replacing the file, and the count of its commits kept beside it.
  backup_path --check_location--> --claim: <real path>.lock and the file, one registrar a file-->
    (no file) --create: temporary name, linked into place-->
    --validate: header, read-only connection, schema--> --prepare: WAL, durability, migrate-->
-   a writable connection (`SqliteStore`)
+   a writable connection (`SqliteStore`); for inspection, a read-only one (`inspected`)
  file deleted or replaced under the store (`moved`) --copy_aside, then put_in_place-->
    a new file at the path, the whole catalog in it
  quarantine_backup: claim, then rename the file and its companions aside (the one way
