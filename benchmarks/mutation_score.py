@@ -119,23 +119,23 @@ EQUIVALENT: dict[str, str] = {
     "`rr_actors.testing.intercept` installs one, which no runtime path calls: a test's, "
     "or the simulated fault `kill_before_commit`'s (simcommit), whose kill then never "
     "comes (recorded as skipped): the registrar's steps are the same",
-    "_store/schema.py:297:ReplaceBinaryOperator_Add_Pow": "`create`'s migration loop is "
+    "_store/schema.py:299:ReplaceBinaryOperator_Add_Pow": "`create`'s migration loop is "
     "`range(CREATED_VERSION, SCHEMA_VERSION)`, `range(7, 7)`: its body never runs (only "
     "tests add steps)",
-    "_store/schema.py:260:ReplaceBinaryOperator_Sub_BitXor": "`found ^ expected` adds to "
+    "_store/schema.py:262:ReplaceBinaryOperator_Sub_BitXor": "`found ^ expected` adds to "
     "`check_objects`' loop only the expected objects the file lacks, each a known name of "
     "its kind: a problem raised as `CatalogCorruptError`, where `found - expected` raises "
     "it naming them as missing: the same refusal of the same files, another message",
-    "_store/schema.py:324:ReplaceComparisonOperator_Eq_Is": "the scheme read from the file "
+    "_store/schema.py:326:ReplaceComparisonOperator_Eq_Is": "the scheme read from the file "
     "is a new `str`, never the module's `DIGEST_SCHEME` object: `is` is always false, so "
     "every open recomputes the digests, to the values a current file holds already (a "
     "cost at open; no row or event differs while its requests unpickle, as every plan's do)",
     "_store/outbox.py:82:ReplaceBinaryOperator_Sub_Mul": "the text of a `ValueError` that "
     "`read_told` catches, logs at DEBUG and skips the row for (`continue` either way)",
-    "_store/saver.py:548:ReplaceBinaryOperator_Mul_LShift:1": "`journal_size_limit` "
+    "_store/saver.py:490:ReplaceBinaryOperator_Mul_LShift:1": "`journal_size_limit` "
     "(SQLite clamps `8 * 1024 << 1024` to 2**63 - 1): only how much of an emptied WAL file "
     "stays on disk after a checkpoint; every row, restore and event is the same",
-    "_store/schema.py:622:ReplaceComparisonOperator_NotEq_IsNot": "`response_version`s are "
+    "_store/schema.py:616:ReplaceComparisonOperator_NotEq_IsNot": "`response_version`s are "
     "ints: `is not` is true wherever `!=` is, and where only it is (equal versions past 256, "
     "two objects) the UPDATE writes the response the row already holds: the same row",
     "_registrar/consumer.py:589:ReplaceComparisonOperator_Is_Eq": "`ResourceState` is a "
@@ -149,13 +149,13 @@ EQUIVALENT: dict[str, str] = {
     "_supervision/children.py:189:ReplaceComparisonOperator_Eq_LtE": "past `one_for_one` "
     "(returned above) a strategy is `one_for_all` or `rest_for_one` (`SupervisorSpec` checks "
     "it): only the first is `<= 'one_for_all'`, as only it is `==`",
-    "_store/files.py:678:NumberReplacer:2": "a 9-byte slice of the -shm never equals the 8 "
+    "_store/files.py:712:NumberReplacer:2": "a 9-byte slice of the -shm never equals the 8 "
     "salts kept, so `CommitCount.committed` always takes its slow path: the -wal header's "
     "salts, which SQLite copies into the -shm's (`WalIndexHdr.aSalt`), the same test; the "
     "same count and record bytes (a performance path: a pread a commit, no event)",
-    "_store/files.py:696:ReplaceFalseWithTrue": "a new `CommitCount` never maps the -shm "
+    "_store/files.py:730:ReplaceFalseWithTrue": "a new `CommitCount` never maps the -shm "
     "until its first `reopen`/`close`: `committed` takes its slow path, the -wal header's "
-    "salts, which SQLite copies into the -shm's; the same count and record (as files.py:678)",
+    "salts, which SQLite copies into the -shm's; the same count and record (as files.py:712)",
 }
 """Survivors shown equivalent: mutant id (`FILE:LINE:OPERATOR[:N]`) -> the line that shows it."""
 

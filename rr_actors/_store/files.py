@@ -5,7 +5,7 @@ replacing the file, and the count of its commits kept beside it.
  backup_path --check_location--> --claim: <real path>.lock and the file, one registrar a file-->
    (no file) --create: temporary name, linked into place-->
    --validate: header, read-only connection, schema--> --prepare: WAL, durability, migrate-->
-   a writable connection (`SqliteStore`)
+   a writable connection (`SqliteStore`); for inspection, a read-only one (`inspected`)
  file deleted or replaced under the store (`moved`) --copy_aside, then put_in_place-->
    a new file at the path, the whole catalog in it
  quarantine_backup: claim, then rename the file and its companions aside (the one way
@@ -357,6 +357,40 @@ def validate(path: Path, *, tidy: bool) -> int:
         raise CatalogCorruptError(name, problem)
     with as_corrupt(name), read_only(path, tidy=tidy) as db:
         return schema.schema_version(db, name)
+
+
+@contextlib.contextmanager
+def inspected(path: Path, *, unpickle: bool) -> Iterator[tuple[sqlite3.Connection, int]]:
+    """The backup at `path` for inspection (`read_backup`), never changed: validated, read
+    only, its pages checked, an older schema migrated in a copy in memory; with its schema
+    version. What the body raises of SQLite, unpickling or a row check: `as_corrupt`.
+
+    Raises:
+        ConfigError: no file at `path`; with `unpickle`, it belongs to another user.
+        CatalogCorruptError: the file is not a readable rr_actors catalog.
+    """
+    if not is_file(path):
+        raise ConfigError(f"no catalog backup at {str(path)!r}")
+    foreign = foreign_owner(path) if unpickle else None
+    if foreign is not None:
+        raise ConfigError(
+            f"catalog backup {foreign}: reading its values would run code from it "
+            "(unpickling); `rr-actors observe --state` and `graph --state` show it "
+            "without unpickling anything"
+        )
+    version, name = validate(path, tidy=True), str(path)
+    with as_corrupt(name), read_only(path, tidy=True) as db:
+        check_pages(db, name)
+        if version == schema.SCHEMA_VERSION:
+            yield db, version
+            return
+        copy = sqlite3.connect(":memory:", isolation_level=None)
+        try:
+            db.backup(copy)
+            schema.migrate(copy, version)
+            yield copy, version
+        finally:
+            copy.close()
 
 
 def prepare(db: sqlite3.Connection, name: str, durability: str, version: int) -> None:

@@ -4,12 +4,12 @@
 ```
  SqliteStore.restore --read_at_once, one read transaction--> resources in doubt, without
                    a digest or with a dependency, and every client record (as rows):
-                   nothing more --> Restored(resources, clients, unread)
+                   nothing more --> Restored(resources, clients, unread), the store's mirror
  Catalog lookup (digest, consumer id, server, origin) --Unread--> rows read, checked, adopted:
                    the store mirrors them (`SqliteStore.adopt`), memory is the truth from then on
  after it serves: the registrar sweeps the rest in slices (`Unread.sweep`): unheld
                    resources and consumers' registrars, between calls
- read_backup: validate, then read every row through a read-only connection (inspection):
+ read_backup: `files.inspected` (checked, read only, migrated in memory), then every row:
                    read_rows, one snapshot (also `SqliteStore.load`), the collector paused
 ```
 
@@ -29,11 +29,10 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any, Protocol
 
-from rr_actors._catalog import NO_DIGEST, ClientRecord, Listing, Resource
+from rr_actors._catalog import NO_DIGEST, ClientRecord, Decoder, Listing, Resource
 from rr_actors._store import files, schema
-from rr_actors._store.schema import Mirror
 from rr_actors._types import Query
-from rr_actors.errors import CatalogCorruptError, ConfigError, RegistrarStoppedError
+from rr_actors.errors import CatalogCorruptError, RegistrarStoppedError
 
 RESOURCE_COLUMNS = (
     "seq, id, server, state, digest, request, response, request_text, response_text, label, failed"
@@ -47,11 +46,11 @@ CLIENT_COLUMNS = (
 
 
 def client_records(
-    client_rows: list[Any], decode: Callable[[str, str, bytes | None], Any]
-) -> tuple[list[ClientRecord], dict[str, int]]:
-    """Client records from their rows (oldest first), with each record's row key."""
+    client_rows: list[Any], decode: Decoder
+) -> tuple[list[ClientRecord], dict[str, tuple[int, int, str | None]]]:
+    """Client records from their rows (oldest first), and their mirror (`Written.clients`)."""
     clients = []
-    seqs = {}
+    mirror = {}
     for row in client_rows:
         seq, qid, server, serving, origin, request, response, parent, loaded, text = row
         query = Query(
@@ -63,8 +62,8 @@ def client_records(
             decode(qid, "response", response),
         )
         clients.append(ClientRecord(query, parent, bool(loaded), request_text=text))
-        seqs[qid] = seq
-    return clients, seqs
+        mirror[qid] = (seq, 0, text)
+    return clients, mirror
 
 
 _LISTED_RESOURCES = (  # a resource as `Catalog.rows` lists it: (id, server, state, digest, failed)
@@ -270,7 +269,7 @@ class Unread:
                 row = db.execute(_RESOURCE_BY_SEQ, (seq,)).fetchone()
                 if row is None:
                     continue
-                schema.check_row(row)
+                schema.check_rows([row])
                 read.append((row, db.execute(CONSUMERS_OF, (seq,)).fetchall()))
         resources = [store.adopt(row, consumers) for row, consumers in read]
         self._read.update(row[0] for row, _ in read)
@@ -296,13 +295,12 @@ class Restored:
     unread: Unread
 
 
-def read_at_once(
-    db: sqlite3.Connection, decode: Callable[[str, str, bytes | None], Any]
-) -> tuple[int, list[tuple[Any, list[Any]]], list[ClientRecord], dict[str, int], bool]:
-    """What a restore reads before it serves, in one read transaction: the last resource
-    row key; the resource rows read at once (`RESOURCES_AT_ONCE`), checked (`ValueError`),
-    each with its consumer rows; every client record (`client_records`); and whether any
-    other resource row is left unread."""
+def read_at_once(store: RowStore, decode: Decoder) -> tuple[Restored, schema.Written]:
+    """What a restore reads before it serves, in one read transaction, and the mirror of it
+    (`SqliteStore.restore`): the resource rows in doubt (`RESOURCES_AT_ONCE`), checked
+    (`ValueError`) and adopted with their consumer rows; every client record; the other
+    resource rows left unread (`Unread`)."""
+    db = store.connection
     db.execute("BEGIN")
     try:
         (last,) = db.execute("SELECT ifnull(max(seq), 0) FROM resources").fetchone()
@@ -311,16 +309,21 @@ def read_at_once(
         more = db.execute(  # (at most len(rows) + 1 keys)
             "SELECT seq FROM resources ORDER BY seq LIMIT ?", (len(rows) + 1,)
         ).fetchall()
-        for row in rows:
-            schema.check_row(row)
-        schema.check_keys([], [], client_rows)
+        schema.check_rows(rows, [], client_rows)
         with_consumers = [(row, db.execute(CONSUMERS_OF, (row[0],)).fetchall()) for row in rows]
     finally:
         db.execute("COMMIT")
-    clients, client_seqs = client_records(client_rows, decode)
+    # (`adopt` raises `seq` past each resource's consumer keys: no scan of them all)
+    written = schema.Written(max([last, *(row[0] for row in client_rows[-1:])]))
+    resources = [written.adopt(row, consumers, decode) for row, consumers in with_consumers]
+    for resource in resources:
+        if resource.digest == NO_DIGEST:
+            resource.digest = None  # indexed from its (decoded) request
+            _ = resource.request
+    clients, written.clients = client_records(client_rows, decode)
     at_once = {row[0] for row in rows}
     remaining = any(seq not in at_once for (seq,) in more)
-    return last, with_consumers, clients, client_seqs, remaining
+    return Restored(resources, clients, Unread(store, last, at_once, remaining=remaining)), written
 
 
 # -- every row at once (`SqliteStore.load`, `read_backup`) -------------------------------------
@@ -363,25 +366,10 @@ def read_backup(path: str | os.PathLike[str], *, unpickle: bool = True) -> Backu
         CatalogCorruptError: the file is not a readable rr_actors catalog.
     """
     file = Path(os.fspath(path))
-    if not files.is_file(file):
-        raise ConfigError(f"no catalog backup at {str(file)!r}")
-    if unpickle:
-        foreign = files.foreign_owner(file)
-        if foreign is not None:
-            raise ConfigError(
-                f"catalog backup {foreign}: reading its values would run code from it "
-                "(unpickling); `rr-actors observe --state` and `graph --state` show it "
-                "without unpickling anything"
-            )
-    version = files.validate(file, tidy=True)
-    name = str(file)
-    with schema.as_corrupt(name), files.read_only(file, tidy=True) as db:
-        files.check_pages(db, name)
-        with _migrated_copy(db, version) as current, gc_paused():
-            rows = read_rows(
-                current, schema.lenient_decode if unpickle else schema.not_unpickled, lenient=True
-            )
-    return Backup(name, version, rows.resources, rows.clients)
+    with files.inspected(file, unpickle=unpickle) as (db, version), gc_paused():
+        decode = schema.lenient_decode if unpickle else schema.not_unpickled
+        rows = read_rows(db, decode, lenient=True)
+    return Backup(str(file), version, rows.resources, rows.clients)
 
 
 @contextlib.contextmanager
@@ -399,13 +387,11 @@ def gc_paused() -> Iterator[None]:
 
 @dataclasses.dataclass
 class Rows:
-    """Rows read from a backup, with the row keys the store needs to update them."""
+    """Rows read from a backup, and the mirror a store needs to update them (`written`)."""
 
     resources: list[Resource]
     clients: list[ClientRecord]
-    mirror: dict[str, Mirror]
-    client_seqs: dict[str, int]
-    max_seq: int
+    written: schema.Written
 
 
 def read_rows(
@@ -423,10 +409,7 @@ def read_rows(
         client_rows = db.execute(CLIENTS).fetchall()
     finally:
         db.execute("COMMIT")
-    if not lenient:
-        for row in rows:
-            schema.check_values(row)
-    schema.check_keys(rows, consumer_rows, client_rows)
+    schema.check_rows(rows, consumer_rows, client_rows, values=not lenient)
     encoded = Resource.encoded
     states = schema.STATES_BY_CODE
     resources = [
@@ -462,35 +445,18 @@ def read_rows(
             resource.digest = None  # the catalog indexes it from its (decoded) request
             _ = resource.request
     mirrors = [
-        Mirror(row[0], r.state, r.response_version, {}, (row[7], row[8], row[9]), r.failed)
+        schema.Mirror(row[0], r.state, r.response_version, {}, (row[7], row[8], row[9]), r.failed)
         for row, r in zip(rows, resources, strict=True)
     ]
     by_seq = {row[0]: (r, m) for row, r, m in zip(rows, resources, mirrors, strict=True)}
-    max_seq = rows[-1][0] if rows else 0
     for seq, query_id, resource_seq, origin in consumer_rows:
         owner = by_seq.get(resource_seq)
         if owner is None:
             raise ValueError(f"consumer {query_id} belongs to a missing resource")
         owner[0].consumers[query_id] = origin
         owner[1].consumers[query_id] = seq
-    if consumer_rows:
-        max_seq = max(max_seq, consumer_rows[-1][0])
-    clients, client_seqs = client_records(client_rows, decode)
-    max_seq = max([max_seq, *client_seqs.values()])
-    mirror = {r.id: m for r, m in zip(resources, mirrors, strict=True)}
-    return Rows(resources, clients, mirror, client_seqs, max_seq)
-
-
-@contextlib.contextmanager
-def _migrated_copy(db: sqlite3.Connection, version: int) -> Iterator[sqlite3.Connection]:
-    """`db` itself if it has the current schema, else a migrated copy in memory."""
-    if version == schema.SCHEMA_VERSION:
-        yield db
-        return
-    copy = sqlite3.connect(":memory:", isolation_level=None)
-    try:
-        db.backup(copy)
-        schema.migrate(copy, version)
-        yield copy
-    finally:
-        copy.close()
+    kinds = (rows, consumer_rows, client_rows)  # (each read in the order of its keys)
+    written = schema.Written(max([0, *(kind[-1][0] for kind in kinds if kind)]))
+    written.resources = {r.id: m for r, m in zip(resources, mirrors, strict=True)}
+    clients, written.clients = client_records(client_rows, decode)
+    return Rows(resources, clients, written)

@@ -5,7 +5,7 @@ writer's background checkpoints.
 ```
  registrar --changed(changes, told) / stage(changes)--> Saver: pending (one Changes)
    --save_on_modify, a turn's end (write), every save_interval (flush)--> SqliteStore.write
-   --`schema.plan_resource` / `plan_client`: only what differs from its mirror, values
+   --`schema.Written.plan`: only what differs from its mirror of what it wrote, values
    pickled before anything is written; the told events in the outbox (`outbox`)-->
    is the path still our file? (`BackupFile.keep_in_place`, asked only once the kernel
    told that a name changed; else the whole catalog copied into place)
@@ -43,11 +43,11 @@ from pathlib import Path
 from typing import Any, Literal, Protocol
 
 from rr_actors import events
-from rr_actors._catalog import NO_DIGEST, Catalog, Changes, ClientRecord, Resource
+from rr_actors._catalog import Catalog, Changes, ClientRecord, Resource
 from rr_actors._core import runtime
 from rr_actors._store import outbox, schema
 from rr_actors._store.files import BackupFile, check_pages, open_backup, write_error
-from rr_actors._store.restore import Restored, Unread, gc_paused, read_at_once, read_rows
+from rr_actors._store.restore import Restored, gc_paused, read_at_once, read_rows
 from rr_actors.config import RegistrarConfig
 from rr_actors.errors import CatalogCorruptError, CatalogWriteError
 
@@ -251,10 +251,7 @@ class SqliteStore:
         self._checked = checked
         self._damaged: str | None = None
         self._loaded = False
-        self._resources: dict[str, schema.Mirror] = {}
-        # query id -> (row key, response_version, request_text)
-        self._clients: dict[str, tuple[int, int, str | None]] = {}
-        self._seq = 0
+        self._written = schema.Written()
         # resources a failed write changed: their next write compares every consumer
         self._owed: set[str] = set()
         self.closed = False
@@ -314,12 +311,7 @@ class SqliteStore:
         except CatalogCorruptError:
             self.close(erase=False)  # unusable; closing also removes its -wal and -shm
             raise
-        self._resources = rows.mirror
-        self._clients = {
-            c.query.id: (rows.client_seqs[c.query.id], c.response_version, c.request_text)
-            for c in rows.clients
-        }
-        self._seq = rows.max_seq
+        self._written = rows.written
         self._loaded = True
         if self._created and not rows.resources and not rows.clients:
             return None
@@ -330,59 +322,22 @@ class SqliteStore:
         created the file (`CatalogCorruptError`)."""
         try:
             with schema.as_corrupt(self.path), gc_paused():
-                last, rows, clients, client_seqs, remaining = read_at_once(self._db, self._decode)
-                self._resources = {}
-                self._seq = last
-                resources = [self.adopt(row, consumers) for row, consumers in rows]
-                for resource in resources:
-                    if resource.digest == NO_DIGEST:
-                        resource.digest = None  # indexed from its (decoded) request
-                        _ = resource.request
-                texts = {c.query.id: c.request_text for c in clients}
-                self._clients = {qid: (seq, 0, texts[qid]) for qid, seq in client_seqs.items()}
+                restored, self._written = read_at_once(self, self._decode)
         except CatalogCorruptError:
             self.close(erase=False)
             raise
-        # (`adopt` raises `_seq` past each resource's consumer keys: no scan of them all)
-        self._seq = max([self._seq, *client_seqs.values()])
         self._loaded = True
-        if self._created and not last and not clients:
+        if self._created and not self._written.seq:  # (no row at all)
             return None
-        unread = Unread(self, last, {row[0] for row, _ in rows}, remaining=remaining)
-        return Restored(resources, clients, unread)
+        return restored
 
     def adopt(self, row: Any, consumer_rows: list[Any]) -> Resource:
         """Build a stored resource with its consumers; from now on the store mirrors it."""
-        seq, rid, server, state, digest, request, response, *texts, failed = row
-        resource = Resource.encoded(
-            rid,
-            server,
-            schema.STATES_BY_CODE[state],
-            NO_DIGEST if digest is None else digest,
-            (request, response),
-            self._decode,
-            seq,
-            (texts[0], texts[1], texts[2]),
-            failed=bool(failed),
-        )
-        keys = {}
-        for key, query_id, origin in consumer_rows:
-            resource.consumers[query_id] = origin
-            keys[query_id] = key
-            self._seq = max(self._seq, key)  # its next consumer's key comes after these
-        self._resources[rid] = schema.Mirror(
-            seq, resource.state, 0, keys, (texts[0], texts[1], texts[2]), resource.failed
-        )
-        return resource
+        return self._written.adopt(row, consumer_rows, self._decode)
 
     def mirrored(self, last: int) -> tuple[int, int]:
         """Mirrored resource rows with a key up to `last`, and their consumer rows."""
-        resources = consumers = 0
-        for mirror in self._resources.values():
-            if mirror.seq <= last:
-                resources += 1
-                consumers += len(mirror.consumers)
-        return resources, consumers
+        return self._written.mirrored(last)
 
     def write(self, changes: Changes, told: Sequence[events.Event] = ()) -> None:
         """Apply `changes` (current rows, `None` for deleted ones) and the numbered events
@@ -400,15 +355,7 @@ class SqliteStore:
         try:
             if not self._loaded:
                 self.load()
-            ops: list[schema.Op] = []
-            mirrors: list[tuple[dict[str, Any], str, Any]] = []  # (table, key, value | schema.GONE)
-            seq = self._seq
-            touched, written = changes.consumers, self._resources
-            for rid, resource in changes.resources.items():
-                ids = None if rid in owed else touched.get(rid)
-                seq = schema.plan_resource(written, ops, mirrors, rid, resource, seq, ids)
-            for qid, record in changes.clients.items():
-                seq = schema.plan_client(self._clients, ops, mirrors, qid, record, seq)
+            ops, mirrors, seq = self._written.plan(changes, owed)
             if told:
                 outbox.plan_told(told, ops)
             if ops:
@@ -418,12 +365,7 @@ class SqliteStore:
             raise
         if owed:
             owed.difference_update(changes.resources)
-        self._seq = seq
-        for table, key, value in mirrors:
-            if value is schema.GONE:
-                table.pop(key, None)
-            else:
-                table[key] = value
+        self._written.settle(mirrors, seq)
 
     @property
     def damaged(self) -> str | None:

@@ -5,11 +5,11 @@ row's values are encoded, decoded and cheaply checked, and the statements a writ
  empty file --MIGRATIONS[0]--> v1 --MIGRATIONS[1]--> v2 --MIGRATIONS[2]--> v3 --MIGRATIONS[3]--> v4
    --MIGRATIONS[4]--> v5 --MIGRATIONS[5]--> v6 --MIGRATIONS[6]--> v7 (SCHEMA_VERSION)
  request / response --dumps--> cloudpickle bytes (NULL for None) --> resources / clients row
- row --check_row / check_keys (no unpickling)--> Resource.encoded --decode, on first use--> value
+ row --check_rows (no unpickling)--> Resource.encoded --decode, on first use--> value
  Changes (rid -> Resource | None, qid -> ClientRecord | None, rid -> the consumer ids added
-   or released since the last write) --plan_resource / plan_client, against the mirror of
-   what the store last wrote--> [(sql, params), ...] and the mirror entries to set once
-   they committed (`GONE`: remove)
+   or released since the last write) --Written.plan (plan_resource / plan_client), against
+   the mirror of what the store last wrote--> [(sql, params), ...] and the mirror entries
+   that `Written.settle` sets once they committed (`GONE`: remove)
 ```
 
 Each step is one transaction; a new file is made at once (`create`). The layout, the
@@ -31,13 +31,15 @@ import dataclasses
 import functools
 import pickle
 import sqlite3
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from typing import Any
 
 from rr_actors._catalog import (
     DIGEST_SCHEME,
     NO_DIGEST,
+    Changes,
     ClientRecord,
+    Decoder,
     Resource,
     ResourceState,
     request_digest,
@@ -373,30 +375,22 @@ def _not_a_pickle(blob: bytes | None) -> bool:
     )
 
 
-def check_values(row: Any) -> None:
-    """Raise `ValueError` if a resource row's request or response cannot be a pickle (a cheap
-    check of what a restore leaves encoded)."""
-    if _not_a_pickle(row[5]) or _not_a_pickle(row[6]):
-        raise ValueError(f"the stored request or response of resource {row[1]} is not a pickle")
-
-
-def _check_state(row: Any) -> None:
-    state = row[3]
-    if type(state) is not int or not 0 <= state < len(STATES_BY_CODE):
-        raise ValueError(f"resource {row[1]} has an unknown state {state!r}")
-
-
-def check_row(row: Any) -> None:
-    """Raise `ValueError` if a resource row has an unknown state or a value is no pickle."""
-    _check_state(row)
-    check_values(row)
-
-
-def check_keys(rows: list[Any], consumer_rows: list[Any], client_rows: list[Any]) -> None:
-    """Raise `ValueError` for a duplicate id (it would replace the first silently) or an
-    unknown state code."""
+def check_rows(
+    rows: list[Any],
+    consumer_rows: Sequence[Any] = (),
+    client_rows: Sequence[Any] = (),
+    *,
+    values: bool = True,
+) -> None:
+    """Raise `ValueError` for a resource row with an unknown state or (`values`) a request
+    or response that cannot be a pickle (a cheap check of what a restore leaves encoded),
+    or for an id stored twice (it would replace the first silently)."""
     for row in rows:
-        _check_state(row)
+        state = row[3]
+        if type(state) is not int or not 0 <= state < len(STATES_BY_CODE):
+            raise ValueError(f"resource {row[1]} has an unknown state {state!r}")
+        if values and (_not_a_pickle(row[5]) or _not_a_pickle(row[6])):
+            raise ValueError(f"the stored request or response of resource {row[1]} is not a pickle")
     for what, ids in (
         ("resource id", [row[1] for row in rows]),
         ("consumer query id", [row[1] for row in consumer_rows]),
@@ -692,3 +686,67 @@ def plan_client(
         )
     mirrors.append((written, qid, (row, record.response_version, record.request_text)))
     return seq
+
+
+class Written:
+    """What a store last wrote, so that a write plans only the difference: each resource's
+    `Mirror`, each client's `(row key, response_version, request_text)`, the last row key."""
+
+    def __init__(self, seq: int = 0) -> None:
+        self.resources: dict[str, Mirror] = {}
+        self.clients: dict[str, tuple[int, int, str | None]] = {}
+        self.seq = seq
+
+    def plan(self, changes: Changes, owed: set[str]) -> tuple[list[Op], list[Any], int]:
+        """The statements that write `changes` (of a resource in `owed`, every consumer
+        compared), the mirror entries to `settle` once they committed, the last row key."""
+        ops: list[Op] = []
+        mirrors: list[tuple[dict[str, Any], str, Any]] = []  # (table, key, value | GONE)
+        seq, touched = self.seq, changes.consumers
+        for rid, resource in changes.resources.items():
+            ids = None if rid in owed else touched.get(rid)
+            seq = plan_resource(self.resources, ops, mirrors, rid, resource, seq, ids)
+        for qid, record in changes.clients.items():
+            seq = plan_client(self.clients, ops, mirrors, qid, record, seq)
+        return ops, mirrors, seq
+
+    def settle(self, mirrors: list[Any], seq: int) -> None:
+        self.seq = seq
+        for table, key, value in mirrors:
+            if value is GONE:
+                table.pop(key, None)
+            else:
+                table[key] = value
+
+    def adopt(self, row: Any, consumer_rows: list[Any], decode: Decoder) -> Resource:
+        """Build a stored resource with its consumers from its rows, and mirror it."""
+        seq, rid, server, state, digest, request, response, *texts, failed = row
+        resource = Resource.encoded(
+            rid,
+            server,
+            STATES_BY_CODE[state],
+            NO_DIGEST if digest is None else digest,
+            (request, response),
+            decode,
+            seq,
+            (texts[0], texts[1], texts[2]),
+            failed=bool(failed),
+        )
+        keys = {}
+        for key, query_id, origin in consumer_rows:
+            resource.consumers[query_id] = origin
+            keys[query_id] = key
+            self.seq = max(self.seq, key)  # its next consumer's key comes after these
+        self.resources[rid] = Mirror(
+            seq, resource.state, 0, keys, (texts[0], texts[1], texts[2]), resource.failed
+        )
+        return resource
+
+    def mirrored(self, last: int) -> tuple[int, int]:
+        """Mirrored resource rows with a key up to `last`, and their consumer rows."""
+        resources = consumers = 0
+        for mirror in self.resources.values():
+            if mirror.seq <= last:
+                resources += 1
+                consumers += len(mirror.consumers)
+        return resources, consumers
