@@ -291,6 +291,8 @@ class Facts:
     Attributes:
         with_backup: registrars that published a `CatalogRestored`.
         forgot: (provider, query id) -> the stamp of its consumer's first `QueryForgotten`.
+        forgets: (provider, query id) -> the stamps of all of them, in order (an id called
+            again once forgotten is held anew).
         released: (provider, query id) -> `(unload_sent, reconciled)` of that `QueryForgotten`
             if forgotten on the answer to its release.
         fatal: query id -> the line of the first `FATAL` its holder was told.
@@ -318,6 +320,7 @@ class Facts:
 
     with_backup: set[str] = dataclasses.field(default_factory=set)
     forgot: dict[tuple[str, str], int] = dataclasses.field(default_factory=dict)
+    forgets: dict[tuple[str, str], list[int]] = dataclasses.field(default_factory=dict)
     released: dict[tuple[str, str], tuple[int, int]] = dataclasses.field(default_factory=dict)
     fatal: dict[str, int] = dataclasses.field(default_factory=dict)
     fatal_at: dict[str, int] = dataclasses.field(default_factory=dict)
@@ -385,6 +388,7 @@ def gather(history: Sequence[Line]) -> Facts:  # noqa: PLR0912, PLR0915 - a bran
             calls.append((event.hlc, event.retry and bool(calls) and calls[-1][1]))
         elif isinstance(event, events.QueryForgotten):
             held = (event.serving_rr, event.query_id)
+            facts.forgets.setdefault(held, []).append(event.hlc)
             if held not in facts.forgot:
                 facts.forgot[held] = event.hlc
                 if event.unload_sent:

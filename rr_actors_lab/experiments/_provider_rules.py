@@ -160,6 +160,7 @@ class Providers:
         self.lost_backups = lost_backups or set()
         self.with_backup = facts.with_backup
         self.forgot = facts.forgot
+        self.forgets = facts.forgets
         self.release_stamps = facts.released
         self.lives = lives or {}
         self.fatal_at = facts.fatal_at
@@ -224,10 +225,10 @@ class Providers:
         catalog.life = life
 
     def failed(self, qid: str, since: int, stamp: int) -> bool:
-        """Whether the call of `qid`, added at `since`, had failed for its caller at `stamp` (rule
-        17)."""
-        outcomes = [(at, answered) for at, answered in self.outcomes.get(qid, ()) if at > since]
-        before = [answered for at, answered in outcomes if at < stamp]
+        """Whether the call of `qid`, added at `since`, had failed for its caller at `stamp`, which
+        so held no id (rule 17; a failed retry of an id it held leaves it held)."""
+        outcomes = [(at, held) for at, held in self.outcomes.get(qid, ()) if at > since]
+        before = [held for at, held in outcomes if at < stamp]
         if before:
             return not before[-1]
         return bool(outcomes) and not outcomes[0][1]
@@ -270,7 +271,7 @@ class Providers:
             return False
         # (the life that held it: the first not ended when it was added)
         holding = [life for life in begun if life.end is None or life.end >= since]
-        if not holding and any(ok for at, ok in self.outcomes.get(qid, ()) if at > since):
+        if not holding and any(held for at, held in self.outcomes.get(qid, ()) if at > since):
             return False  # (none: a dead life's call, unless a life shown later got its answer)
         start = operator.attrgetter("start")
         last = min(holding, key=start) if holding else max(begun, key=start)
@@ -290,6 +291,14 @@ class Providers:
         lives = self.lives_of(consumer)
         after = next((i for i, life in enumerate(lives) if life.start == at), 0)
         return after > 0 and lives[after - 1].last < stamp <= self.forgot[name, qid]
+
+    def let_go_before(self, name: str, qid: str, stamp: int) -> bool:
+        """Whether `qid`'s consumer forgot it at `name` before `stamp` and held it no more
+        since: no call of that id was answered after (called again, it is held anew)."""
+        last = max((at for at in self.forgets.get((name, qid), ()) if at < stamp), default=None)
+        return last is not None and not any(
+            held for at, held in self.outcomes.get(qid, ()) if last < at < stamp
+        )
 
     def let_go_of(self, name: str, qid: str) -> bool:
         """Whether `qid`'s consumer let it go of its own: forgot it, or its last call of it
@@ -323,12 +332,11 @@ class Providers:
                 continue
             # its consumer had let it go: the release was committed, and the kill came
             # before its `ConsumerReleased` was published (the restore shows the commit)
-            if self.forgot.get((name, qid), let_go_by) < let_go_by:
+            if self.let_go_before(name, qid, let_go_by):
                 continue
             # (its forget is shown, after: it lived to let it go, its events were not lost)
-            if (name, qid) not in self.forgot and self.died_before(
-                held.consumer, stamp, held.stamp, qid
-            ):
+            shown = any(at >= let_go_by for at in self.forgets.get((name, qid), ()))
+            if not shown and self.died_before(held.consumer, stamp, held.stamp, qid):
                 continue
             if self.released_before_kill(name, held.consumer, qid, stamp):
                 continue

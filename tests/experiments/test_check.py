@@ -2057,6 +2057,27 @@ def test_an_id_forgotten_untold_at_reconcile_is_lost_though_its_holder_is_killed
     assert {2, 6} == _found(_stamped([*h[:4], forgot, restart, *killed, *later]), "kept")
 
 
+def test_an_id_held_again_once_forgotten_is_owed_a_fatal_when_a_restart_loses_it() -> None:
+    # cm forgets Q1 (its retry timed out) and erm releases it; cm calls Q1 again (the same
+    # id, a workload's `again`) and holds it anew; erm (no backup) is killed, its restart
+    # loses it, and cm is never told: that first forget let go of the first holding only
+    h = without_backup()
+    forgot = events.QueryForgotten("cm", Q1, "erm", "withdrawn", pid=C)
+    gone = [
+        events.ConsumerReleased("erm", RID, Q1, "cm", pid=P, seq=3),
+        events.ResourceUnloaded("erm", "cam", RID, pid=P, seq=4),
+    ]
+    anew = [
+        events.ResourceLoaded("erm", "cam", RID2, Q1, 0.01, 42, "cam 0", pid=P, seq=5),
+        events.ConsumerAdded("erm", RID2, Q1, "cm", pid=P, seq=6),
+        h[2],
+    ]
+    restart = events.RegistrarStopped("erm", (), (), (), pid=P + 1, seq=1)
+    told = [events.StatusDelivered("cm", Q1, rr.Status.FATAL, 1, 0.0, "s9", pid=C)]
+    _holds(_stamped([*h[:3], forgot, *gone, *anew, h[3], *told, restart]))
+    assert {8, 11} == _found(_stamped([*h[:3], forgot, *gone, *anew, h[3], restart]), "kept")
+
+
 def retried_at_the_restart(*, answered: bool) -> list[events.Event]:
     """cm holds Q1 and calls it again (the same id, a workload's `again`) as erm (no backup)
     is killed; the retry reaches the restart, which loads Q1 anew (`answered`) or whose load
