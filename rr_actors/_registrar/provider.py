@@ -246,13 +246,15 @@ class Admission:
             self.wanting.pop(server, None)
         consumers = {*of, *wanting, origin}
         share = max(1, bound // len(consumers))
+        if pending < bound and mine < share and len(wanting) == (origin in wanting):
+            return None  # (taken, and no other consumer waits: nobody to share with)
         since, told = wanting.get(origin, (now, now))  # (`told`: when it is back, if later)
         others = [(of.get(n, 0), first) for n, (first, _) in wanting.items() if n != origin]
         ahead = sum(other < (mine, since) for other in others)  # (fewer under way, or longer)
         counts = (pending, mine, share, len(consumers), ahead, since)
         waits = (tuple(loads for loads, _ in others), tuple(first for _, first in others))
         if pending + ahead < bound and mine < share:  # (a free slot each kept for those)
-            return Share(False, *counts, *waits) if others else None
+            return Share(False, *counts, *waits)  # (others wait: the early return's else)
         self.wanting.setdefault(server, {})[origin] = (since, max(now, told))
         return Share(True, *counts, *waits)
 
@@ -548,19 +550,18 @@ class Provider:
         bound = server.max_pending or self.registrar.config.max_pending
         origin = message.origin_rr
         on = self.admission.refusal(server.name, origin, bound)
-        counts = (
-            () if on is None else (server.name, origin, on.pending, on.mine, on.share, on.among)
-        )
-        if on is not None and not on.refused and self.registrar.events.active:  # (others wait)
-            told = (*counts, bound, on.since, on.waiting, on.firsts)
-            self.registrar.events.publish(events.ShareAdmitted(self.registrar.name, *told))
+        if on is not None and on.pending < bound and self.registrar.events.active:  # (each told)
+            counts = (self.registrar.name, server.name, origin, on.pending, on.mine, on.share)
+            facts = (bound, on.since, on.waiting, on.firsts)  # (refused, or others wait)
+            self.registrar.events.publish(
+                events.ShareRefused(*counts, on.among, on.ahead, *facts)
+                if on.refused
+                else events.ShareAdmitted(*counts, on.among, *facts)
+            )
         if on is not None and on.refused:
             pending, mine, share = on.pending, on.mine, on.share
             if pending >= bound:  # (not a consumer held to its share: the server is full)
                 self.refused(server, pending, bound)
-            elif self.registrar.events.active:  # (held to its share: each refusal told)
-                told = (*counts, on.ahead, bound)
-                self.registrar.events.publish(events.ShareRefused(self.registrar.name, *told))
             why = (
                 f"has {pending} loads queued or running, its bound (max_pending={bound})"
                 if pending >= bound

@@ -657,7 +657,10 @@ class ShareRefused(_Numbered):
     """A server with room (`pending` < `bound`, its `max_pending`) refused a load of `consumer`
     holding `under_way` of them: past its `share` (`bound // consumers`, at least 1; `consumers`
     with loads there or refused within 2 s, it included), or behind `ahead` others waiting with
-    fewer (`Admission.refusal`). One per refusal; at the bound, `ServerOverloaded`."""
+    fewer, or as many and first refused before its `since` (the provider process's
+    `time.monotonic()`, seconds; now if it was not), of each other one waiting its loads under
+    way (`waiting`) and its first refusal (`firsts`, in the same order), `()` before schema 9
+    (`Admission.refusal`). One per refusal; at the bound, `ServerOverloaded`."""
 
     registrar: str
     server: str
@@ -668,15 +671,16 @@ class ShareRefused(_Numbered):
     consumers: int
     ahead: int
     bound: int
+    since: float = 0.0
+    waiting: tuple[int, ...] = ()
+    firsts: tuple[float, ...] = ()
 
 
 @_kind
 class ShareAdmitted(_Numbered):
     """A server admitted a load of `consumer` while others waited there (as it decided: one whose
-    request or record then fails is not started), on `ShareRefused`'s counts (`Admission.refusal`):
-    `since`, when it was first refused (the provider process's `time.monotonic()`, seconds; the
-    admission's time if it was not), and of each other consumer waiting, its loads under way
-    (`waiting`) and when it was first refused (`firsts`, in the same order)."""
+    request or record then fails is not started), on `ShareRefused`'s counts and facts but
+    `ahead`, which the facts give (`Admission.refusal`)."""
 
     registrar: str
     server: str

@@ -1186,7 +1186,7 @@ def _overloaded(
 
 
 def test_a_server_told_overloaded_again_within_a_second_is_found() -> None:
-    """Issue 68 item 8: the mutant `provider.py:538` (`<` made `is`) publishes a
+    """Issue 68 item 8: the mutant `provider.py:540` (`<` made `is`) publishes a
     `ServerOverloaded` at every refusal, hundreds a second, where one a second is the bound;
     every seed of every plan held."""
     h = clean()
@@ -1221,12 +1221,21 @@ def test_a_server_told_overloaded_once_a_second_or_afresh_in_a_new_life_holds(
 
 
 def _share_refused(
-    pending: int, under_way: int, share: int, consumers: int = 2, ahead: int = 0
+    pending: int,
+    under_way: int,
+    share: int,
+    consumers: int = 2,
+    ahead: int = 0,
+    waiting: tuple[int, ...] = (),
+    since: float = 5.0,
+    firsts: tuple[float, ...] = (),
 ) -> events.ShareRefused:
-    """erm's server `cam` (its bound 8) refused a load of consumer `api` at 5.0."""
+    """erm's server `cam` (its bound 8) refused a load of consumer `api` at 5.0 (by default
+    nobody else waiting told: as a line before schema 9 reads)."""
     return events.ShareRefused(
-        "erm", "cam", "api", pending, under_way, share, consumers, ahead, 8, at=5.0, pid=P
-    )
+        "erm", "cam", "api", pending, under_way, share, consumers, ahead, 8, since, waiting,
+        firsts, at=5.0, pid=P,
+    )  # fmt: skip
 
 
 @pytest.mark.parametrize(
@@ -1236,6 +1245,7 @@ def _share_refused(
         pytest.param((6, 5, 5), id="a-share-not-the-bound-among-its-consumers"),
         pytest.param((8, 4, 4), id="at-the-bound-not-a-share-refusal"),
         pytest.param((3, 4, 4), id="more-of-its-own-under-way-than-in-all"),
+        pytest.param((6, 1, 4, 2, 0, (3, 3)), id="more-loads-of-its-consumers-than-under-way"),
     ],
 )
 def test_a_refusal_of_a_consumer_a_server_with_room_did_not_need_is_found(
@@ -1254,6 +1264,10 @@ def test_a_refusal_of_a_consumer_a_server_with_room_did_not_need_is_found(
         pytest.param((6, 4, 4), id="at-its-share"),
         pytest.param((7, 1, 2, 4, 1), id="its-free-slot-kept-for-one-ahead"),
         pytest.param((1, 1, 1, 9), id="at-least-1-among-more-consumers-than-slots"),
+        pytest.param(
+            (7, 1, 2, 4, 1, (0, 2), 5.0, (4.9, 4.0)), id="behind-the-one-of-three-with-fewer"
+        ),
+        pytest.param((7, 1, 2, 3, 1, (1,), 5.0, (4.0,)), id="behind-one-as-many-waiting-longer"),
     ],
 )
 def test_a_refusal_at_a_consumers_share_or_behind_others_waiting_holds(
@@ -1261,6 +1275,27 @@ def test_a_refusal_at_a_consumers_share_or_behind_others_waiting_holds(
 ) -> None:
     h = clean()
     assert [] == _of_rule(renumbered([*h[:3], _share_refused(*refused)]), "share-needed")
+
+
+@pytest.mark.parametrize(
+    "refused",
+    [
+        pytest.param(
+            (7, 1, 2, 4, 2, (1, 2), 4.0, (4.5, 3.0)), id="none-ahead-told-as-two-different"
+        ),
+        pytest.param((7, 1, 2, 3, 1, (1,), 4.0, (4.0,)), id="one-as-many-waiting-as-long-told"),
+    ],
+)
+def test_a_refusal_whose_ahead_is_not_the_count_of_those_waiting_ahead_of_it_is_found(
+    refused: tuple[Any, ...],
+) -> None:
+    """Issue 68 item 8: the mutants of the order of those waiting (`provider.py:253`,
+    `other < (mine, since)` made `!=`, `is not`, `<=`) count more ahead than wait ahead: a
+    refusal kept a free slot for them, its `ahead` the server's. The check counts it itself
+    from those waiting that the refusal tells (schema 9): here none is ahead (one with as
+    many loads waiting a shorter time, or as long, one with more), and the slot was free."""
+    h = clean()
+    assert {4} == _found(renumbered([*h[:3], _share_refused(*refused)]), "share-needed")
 
 
 def _share_admitted(
@@ -1295,9 +1330,9 @@ def _share_admitted(
 def test_a_load_admitted_past_a_consumers_share_or_the_slot_kept_for_those_waiting_is_found(
     admitted: tuple[Any, ...],
 ) -> None:
-    """Issue 68 items 7-8: the mutants of the order of those waiting (`provider.py:251`,
+    """Issue 68 items 7-8: the mutants of the order of those waiting (`provider.py:253`,
     `other < (mine, since)` made `==`, `is`, `>`, ...) and of the admission's test
-    (`provider.py:254`, `pending + ahead < bound` made `-`, `<=`, `or`, ...) admit a load past
+    (`provider.py:256`, `pending + ahead < bound` made `-`, `<=`, `or`, ...) admit a load past
     the consumer's share, or into the free slot kept for a consumer waiting ahead of it."""
     h = clean()
     assert {4} == _found(renumbered([*h[:3], _share_admitted(*admitted)]), "share-kept")
@@ -1393,7 +1428,7 @@ def _plant(monkeypatch: pytest.MonkeyPatch, where: str, old: str, new: str) -> N
             "if now - last < _REFUSALS_EVERY:",
             "if now - last is _REFUSALS_EVERY:",
             "overload-paced",
-            id="the mutant provider.py:538 is caught by overload-paced at simoverload seed 1",
+            id="the mutant provider.py:540 is caught by overload-paced at simoverload seed 1",
         ),
         pytest.param(  # (a share of `bound >> consumers`: 5 >> 2, 1 where 2 is api's share)
             "simfair",
