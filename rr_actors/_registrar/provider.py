@@ -139,10 +139,8 @@ _LOAD_S_WEIGHT = 0.2
 
 
 class Share(NamedTuple):
-    """What `Admission.refusal` decided a load of a consumer on, told in `ShareRefused` or
-    `ShareAdmitted`: the server's loads under way (`pending`), the consumer's (`mine`), its
-    share among `among` consumers, how many wait `ahead` of it, when it began to wait (`since`,
-    `runtime.monotonic()`: now if it did not), each other one waiting's loads and first wait."""
+    """What `Admission.refusal` decided a load of a consumer on: `ShareRefused`'s fields (`mine`:
+    its `under_way`, `among`: its `consumers`; `since` on `runtime.monotonic()`)."""
 
     refused: bool
     pending: int
@@ -550,7 +548,8 @@ class Provider:
         bound = server.max_pending or self.registrar.config.max_pending
         origin = message.origin_rr
         on = self.admission.refusal(server.name, origin, bound)
-        if on is not None and on.pending < bound and self.registrar.events.active:  # (each told)
+        tell = self.registrar.events.active  # (each admission while others wait, each refusal
+        if on is not None and tell and (not on.refused or on.pending < bound):  # with room)
             counts = (self.registrar.name, server.name, origin, on.pending, on.mine, on.share)
             facts = (bound, on.since, on.waiting, on.firsts)  # (refused, or others wait)
             self.registrar.events.publish(
@@ -559,15 +558,14 @@ class Provider:
                 else events.ShareAdmitted(*counts, on.among, *facts)
             )
         if on is not None and on.refused:
-            pending, mine, share = on.pending, on.mine, on.share
-            if pending >= bound:  # (not a consumer held to its share: the server is full)
-                self.refused(server, pending, bound)
+            if on.pending >= bound:  # (not a consumer held to its share: the server is full)
+                self.refused(server, on.pending, bound)
             why = (
-                f"has {pending} loads queued or running, its bound (max_pending={bound})"
-                if pending >= bound
-                else f"has {mine} loads of {origin!r} queued or running, its share of its "
+                f"has {on.pending} loads queued or running, its bound (max_pending={bound})"
+                if on.pending >= bound
+                else f"has {on.mine} loads of {origin!r} queued or running, its share of its "
                 f"bound (max_pending={bound}) while other consumers want loads there "
-                f"({share}), or one that waits is served first"
+                f"({on.share}), or one that waits is served first"
             )
             every = server.pace.load_s / self.registrar.workers.max_workers
             after = self.admission.come_back(

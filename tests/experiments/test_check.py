@@ -1438,6 +1438,14 @@ def _plant(monkeypatch: pytest.MonkeyPatch, where: str, old: str, new: str) -> N
             "share-needed",
             id="the mutant provider.py:248 is caught by share-needed at simfair seed 1",
         ),
+        pytest.param(  # (all those waiting but one with its own count and wait counted ahead:
+            "simfair",  # refusals keep slots for them, the `ahead` share-needed counts itself)
+            "rr_actors._registrar.provider:Admission.refusal",
+            "ahead = sum(other < (mine, since) for",
+            "ahead = sum(other != (mine, since) for",
+            "share-needed",
+            id="the mutant provider.py:253 is caught by share-needed at simfair seed 1",
+        ),
         pytest.param(  # (simshed's end stops its tree with `stop(parallel=True)`)
             "simshed",
             "rr_actors._supervision.policy:Stopping.stop_in_parallel",
