@@ -139,10 +139,8 @@ _LOAD_S_WEIGHT = 0.2
 
 
 class Share(NamedTuple):
-    """What `Admission.refusal` decided a load of a consumer on, told in `ShareRefused` or
-    `ShareAdmitted`: the server's loads under way (`pending`), the consumer's (`mine`), its
-    share among `among` consumers, how many wait `ahead` of it, when it began to wait (`since`,
-    `runtime.monotonic()`: now if it did not), each other one waiting's loads and first wait."""
+    """What `Admission.refusal` decided a load of a consumer on: `ShareRefused`'s fields (`mine`:
+    its `under_way`, `among`: its `consumers`; `since` on `runtime.monotonic()`)."""
 
     refused: bool
     pending: int
@@ -246,13 +244,15 @@ class Admission:
             self.wanting.pop(server, None)
         consumers = {*of, *wanting, origin}
         share = max(1, bound // len(consumers))
+        if pending < bound and mine < share and len(wanting) == (origin in wanting):
+            return None  # (taken, and no other consumer waits: nobody to share with)
         since, told = wanting.get(origin, (now, now))  # (`told`: when it is back, if later)
         others = [(of.get(n, 0), first) for n, (first, _) in wanting.items() if n != origin]
         ahead = sum(other < (mine, since) for other in others)  # (fewer under way, or longer)
         counts = (pending, mine, share, len(consumers), ahead, since)
         waits = (tuple(loads for loads, _ in others), tuple(first for _, first in others))
         if pending + ahead < bound and mine < share:  # (a free slot each kept for those)
-            return Share(False, *counts, *waits) if others else None
+            return Share(False, *counts, *waits)  # (others wait: the early return's else)
         self.wanting.setdefault(server, {})[origin] = (since, max(now, told))
         return Share(True, *counts, *waits)
 
@@ -548,25 +548,24 @@ class Provider:
         bound = server.max_pending or self.registrar.config.max_pending
         origin = message.origin_rr
         on = self.admission.refusal(server.name, origin, bound)
-        counts = (
-            () if on is None else (server.name, origin, on.pending, on.mine, on.share, on.among)
-        )
-        if on is not None and not on.refused and self.registrar.events.active:  # (others wait)
-            told = (*counts, bound, on.since, on.waiting, on.firsts)
-            self.registrar.events.publish(events.ShareAdmitted(self.registrar.name, *told))
+        tell = self.registrar.events.active  # (each admission while others wait, each refusal
+        if on is not None and tell and (not on.refused or on.pending < bound):  # with room)
+            counts = (self.registrar.name, server.name, origin, on.pending, on.mine, on.share)
+            facts = (bound, on.since, on.waiting, on.firsts)  # (refused, or others wait)
+            self.registrar.events.publish(
+                events.ShareRefused(*counts, on.among, on.ahead, *facts)
+                if on.refused
+                else events.ShareAdmitted(*counts, on.among, *facts)
+            )
         if on is not None and on.refused:
-            pending, mine, share = on.pending, on.mine, on.share
-            if pending >= bound:  # (not a consumer held to its share: the server is full)
-                self.refused(server, pending, bound)
-            elif self.registrar.events.active:  # (held to its share: each refusal told)
-                told = (*counts, on.ahead, bound)
-                self.registrar.events.publish(events.ShareRefused(self.registrar.name, *told))
+            if on.pending >= bound:  # (not a consumer held to its share: the server is full)
+                self.refused(server, on.pending, bound)
             why = (
-                f"has {pending} loads queued or running, its bound (max_pending={bound})"
-                if pending >= bound
-                else f"has {mine} loads of {origin!r} queued or running, its share of its "
+                f"has {on.pending} loads queued or running, its bound (max_pending={bound})"
+                if on.pending >= bound
+                else f"has {on.mine} loads of {origin!r} queued or running, its share of its "
                 f"bound (max_pending={bound}) while other consumers want loads there "
-                f"({share}), or one that waits is served first"
+                f"({on.share}), or one that waits is served first"
             )
             every = server.pace.load_s / self.registrar.workers.max_workers
             after = self.admission.come_back(

@@ -85,7 +85,7 @@ def _event(row: Any) -> events.Event:
     )
 
 
-_ROWS_READ = (3, 4, 5, 6, 7, SCHEMA)  # the event schemas read back
+_ROWS_READ = (3, 4, 5, 6, 7, 8, SCHEMA)  # the event schemas read back
 
 _CALL_ENDS = ("started", "trace", "caller_span")
 _ADDED: dict[int, dict[str, tuple[str, ...]]] = {
@@ -100,6 +100,7 @@ _ADDED: dict[int, dict[str, tuple[str, ...]]] = {
         "CallWithdrawn": _CALL_ENDS,
     },
     8: {"ResourceLoaded": ("trace",)},
+    9: {"ShareRefused": ("since", "waiting", "firsts")},
 }  # the fields each event schema added (an older row has no value for them)
 
 

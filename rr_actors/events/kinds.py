@@ -636,14 +636,10 @@ class UnloadCutShort(_Numbered):
 
 @_kind
 class ServerOverloaded(_Numbered):
-    """A server refused new loads at its `max_pending`: at its first refusal, then at most once a
-    second (shed loads are `LoadFailed`, `DeadlineExceededError`).
-
-    Attributes:
-        pending: its new loads queued or running.
-        bound: its `max_pending`.
-        refused: calls it refused since its previous `ServerOverloaded`, this one included.
-    """
+    """A server refused new loads at its `max_pending` (`bound`), `pending` of them queued or
+    running: at its first refusal, then at most once a second, `refused` counting the calls it
+    refused since its previous `ServerOverloaded`, this one included (shed loads are
+    `LoadFailed`, `DeadlineExceededError`)."""
 
     registrar: str
     server: str
@@ -656,8 +652,10 @@ class ServerOverloaded(_Numbered):
 class ShareRefused(_Numbered):
     """A server with room (`pending` < `bound`, its `max_pending`) refused a load of `consumer`
     holding `under_way` of them: past its `share` (`bound // consumers`, at least 1; `consumers`
-    with loads there or refused within 2 s, it included), or behind `ahead` others waiting with
-    fewer (`Admission.refusal`). One per refusal; at the bound, `ServerOverloaded`."""
+    with loads there or refused within 2 s, it included), or behind `ahead` of those waiting
+    (`waiting`: each other's loads under way; `firsts`: its first refusal; `()` before schema 9)
+    with fewer, or as many and refused before `since` (its own first refusal, or now; the
+    provider's `time.monotonic()`, seconds). One per refusal; at the bound, `ServerOverloaded`."""
 
     registrar: str
     server: str
@@ -668,15 +666,15 @@ class ShareRefused(_Numbered):
     consumers: int
     ahead: int
     bound: int
+    since: float = 0.0
+    waiting: tuple[int, ...] = ()
+    firsts: tuple[float, ...] = ()
 
 
 @_kind
 class ShareAdmitted(_Numbered):
     """A server admitted a load of `consumer` while others waited there (as it decided: one whose
-    request or record then fails is not started), on `ShareRefused`'s counts (`Admission.refusal`):
-    `since`, when it was first refused (the provider process's `time.monotonic()`, seconds; the
-    admission's time if it was not), and of each other consumer waiting, its loads under way
-    (`waiting`) and when it was first refused (`firsts`, in the same order)."""
+    request or record then fails is not started), on `ShareRefused`'s counts, but `ahead`."""
 
     registrar: str
     server: str

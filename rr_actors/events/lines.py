@@ -38,17 +38,18 @@ __all__ = [
     "to_lines",
 ]
 
-SCHEMA = 8
-"""Version of the dicts `to_dict` writes (the `"schema"` key); `from_dict` reads 1 to 8.
+SCHEMA = 9
+"""Version of the dicts `to_dict` writes (the `"schema"` key); `from_dict` reads 1 to 9.
 
 A field added since a line's schema gets its default: 2 added `seq` (0), digests, labels, reasons
 and the catalog events; 3 `host` (`""`) and `hlc` (the stamp of `at`); 4 `ChildExited`'s `restart`
 (`""`), `normal`, `stopped`, `max_restarts`, `period`; 5 `QueryForgotten`'s `unload_sent` and
 `reconciled` (0); 6 `ChildExited`'s `strategy` and `children`; 7 the calls' `trace`, `caller_span`
-(`""`) and `started` (0.0); 8 `ResourceLoaded`'s `trace`.
+(`""`) and `started` (0.0); 8 `ResourceLoaded`'s `trace`; 9 `ShareRefused`'s `since` (0.0),
+`waiting` and `firsts` (`()`).
 """
 
-_READS = (1, 2, 3, 4, 5, 6, 7, SCHEMA)
+_READS = (1, 2, 3, 4, 5, 6, 7, 8, SCHEMA)
 
 
 _TYPES: dict[str, type[Event]] = {cls.__name__: cls for cls in typing.get_args(Event)}

@@ -892,8 +892,11 @@ def overload_paced(steps: list[Step]) -> list[Finding]:
 def share_needed(steps: list[Step]) -> list[Finding]:
     """`share-needed`: a server with room refuses a consumer's load only past its fair share,
     or to keep a slot for consumers waiting ahead of it (`Admission.refusal`). Each
-    `ShareRefused` has room (`pending` < `bound`, `under_way` <= `pending`), the share the
-    docs give (`bound // consumers`, at least 1; `ahead` < `consumers`), and a cause: the
+    `ShareRefused` has room (`pending` < `bound`, `under_way` <= `pending`), counts that add up
+    (the waiting's loads within `pending`, fewer waiting than `consumers`), the share the docs
+    give (`bound // consumers`, at least 1), an `ahead` the check counts itself from those
+    waiting (`waiting`, `firsts`: fewer loads under way, or as many and first refused before
+    `since`; told since schema 9, an older line's `ahead` taken as told), and a cause: the
     consumer holds its share (`under_way` >= `share`) or the free slots are kept for those
     ahead (`pending + ahead` >= `bound`)."""
     findings: list[Finding] = []
@@ -901,12 +904,19 @@ def share_needed(steps: list[Step]) -> list[Finding]:
         if not isinstance(event, events.ShareRefused):
             continue
         share = max(1, event.bound // max(1, event.consumers))
+        me = (event.under_way, event.since)  # (fewer loads first, then the longest waiting)
+        ahead = sum(other < me for other in zip(event.waiting, event.firsts, strict=False))
         if not (
-            event.under_way <= event.pending < event.bound and 0 <= event.ahead < event.consumers
+            min((event.under_way, *event.waiting)) >= 0
+            and event.under_way + sum(event.waiting) <= event.pending < event.bound
+            and len(event.waiting) == len(event.firsts) < event.consumers
+            and 0 <= event.ahead < event.consumers
         ):
             why = "its counts do not add up: a server with room, the consumer among its consumers"
         elif event.share != share:
             why = f"its share is {share} (its bound among its consumers, at least 1)"
+        elif event.waiting and event.ahead != ahead:  # (none told: a line before schema 9)
+            why = f"{ahead} of the {len(event.waiting)} waiting are ahead of it, not {event.ahead}"
         elif event.under_way < event.share and event.pending + event.ahead < event.bound:
             why = "it was under its share, with a free slot beyond those kept for the others"
         else:
@@ -917,7 +927,8 @@ def share_needed(steps: list[Step]) -> list[Finding]:
                 "violation",
                 f"{name}/{event.server} refused a load of {event.consumer} holding "
                 f"{event.under_way} of its {event.pending} loads under way (bound {event.bound}, "
-                f"share {event.share} among {event.consumers}, {event.ahead} ahead): {why}",
+                f"share {event.share} among {event.consumers}, {event.ahead} ahead of "
+                f"{len(event.waiting)} waiting holding {list(event.waiting)}): {why}",
                 (line,),
                 (name,),
             )

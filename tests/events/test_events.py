@@ -58,7 +58,7 @@ EXAMPLES: list[events.Event] = [
     events.RegistrarStopped("cm", (), (), ((QID, "erm", "start_process", ""),), (0, 0, 1)),
     events.UnloadCutShort("erm", "start_process", RID),
     events.ServerOverloaded("erm", "start_process", 1000, 1000, 17),
-    events.ShareRefused("erm", "start_process", "api", 600, 500, 500, 2, 0, 1000),
+    events.ShareRefused("erm", "start_process", "api", 6, 5, 5, 2, 1, 10, 0.5, (1,), (0.25,)),
     events.ShareAdmitted("erm", "start_process", "api", 5, 1, 2, 2, 5, 0.25, (0,), (0.5,)),
     events.EventsDropped(17),
     events.EventsUnpublished((4, 5), pid=42),
@@ -328,6 +328,21 @@ def test_from_dict_reads_a_schema_7_resource_loaded_without_its_trace() -> None:
         events.from_dict(data)
 
 
+def test_from_dict_reads_a_schema_8_share_refused_without_those_waiting() -> None:
+    refused = events.ShareRefused("erm", "cam", "api", 5, 3, 2, 2, 1, 8, 0.5, (1,), (0.25,))
+    assert refused == events.from_dict(line(refused))
+    data = line(refused)
+    for name in ("since", "waiting", "firsts"):
+        del data[name]
+    data["schema"] = 8
+
+    expected = dataclasses.replace(refused, since=0.0, waiting=(), firsts=())
+    assert expected == events.from_dict(data)
+    data["schema"] = events.lines.SCHEMA
+    with pytest.raises(rr.ConfigError, match="since"):  # (a line of this schema has them)
+        events.from_dict(data)
+
+
 def test_from_dict_accepts_an_int_for_a_float() -> None:
     data = line(events.ChildRestarted("root", "erm", 1, 0.5, at=10.0))
     data["restart_s"] = 2
@@ -356,7 +371,7 @@ def _with(**changes: Any) -> dict[str, Any]:
     ("data", "named"),
     [
         ([1, 2], "list"),
-        (_with(schema=9), "schema 9"),
+        (_with(schema=10), "schema 10"),
         (_with(schema=_DROP), "schema None"),
         (_with(type="Exploded"), "'Exploded'"),
         (_with(type=_DROP), "None"),

@@ -1221,12 +1221,21 @@ def test_a_server_told_overloaded_once_a_second_or_afresh_in_a_new_life_holds(
 
 
 def _share_refused(
-    pending: int, under_way: int, share: int, consumers: int = 2, ahead: int = 0
+    pending: int,
+    under_way: int,
+    share: int,
+    consumers: int = 2,
+    ahead: int = 0,
+    waiting: tuple[int, ...] = (),
+    since: float = 5.0,
+    firsts: tuple[float, ...] = (),
 ) -> events.ShareRefused:
-    """erm's server `cam` (its bound 8) refused a load of consumer `api` at 5.0."""
+    """erm's server `cam` (its bound 8) refused a load of consumer `api` at 5.0 (by default
+    nobody else waiting told: as a line before schema 9 reads)."""
     return events.ShareRefused(
-        "erm", "cam", "api", pending, under_way, share, consumers, ahead, 8, at=5.0, pid=P
-    )
+        "erm", "cam", "api", pending, under_way, share, consumers, ahead, 8, since, waiting,
+        firsts, at=5.0, pid=P,
+    )  # fmt: skip
 
 
 @pytest.mark.parametrize(
@@ -1236,12 +1245,13 @@ def _share_refused(
         pytest.param((6, 5, 5), id="a-share-not-the-bound-among-its-consumers"),
         pytest.param((8, 4, 4), id="at-the-bound-not-a-share-refusal"),
         pytest.param((3, 4, 4), id="more-of-its-own-under-way-than-in-all"),
+        pytest.param((6, 1, 4, 2, 0, (3, 3)), id="more-loads-of-its-consumers-than-under-way"),
     ],
 )
 def test_a_refusal_of_a_consumer_a_server_with_room_did_not_need_is_found(
     refused: tuple[int, int, int],
 ) -> None:
-    """Issue 68 items 7-8: the mutants of the share (`provider.py:248`, `bound // consumers`
+    """Issue 68 items 7-8: the mutants of the share (`provider.py:246`, `bound // consumers`
     made `>>`, `%`, `+`, ...) refuse a consumer under its fair share, or tell a share that is
     not the bound divided among the consumers."""
     h = clean()
@@ -1254,6 +1264,10 @@ def test_a_refusal_of_a_consumer_a_server_with_room_did_not_need_is_found(
         pytest.param((6, 4, 4), id="at-its-share"),
         pytest.param((7, 1, 2, 4, 1), id="its-free-slot-kept-for-one-ahead"),
         pytest.param((1, 1, 1, 9), id="at-least-1-among-more-consumers-than-slots"),
+        pytest.param(
+            (7, 1, 2, 4, 1, (0, 2), 5.0, (4.9, 4.0)), id="behind-the-one-of-three-with-fewer"
+        ),
+        pytest.param((7, 1, 2, 3, 1, (1,), 5.0, (4.0,)), id="behind-one-as-many-waiting-longer"),
     ],
 )
 def test_a_refusal_at_a_consumers_share_or_behind_others_waiting_holds(
@@ -1261,6 +1275,27 @@ def test_a_refusal_at_a_consumers_share_or_behind_others_waiting_holds(
 ) -> None:
     h = clean()
     assert [] == _of_rule(renumbered([*h[:3], _share_refused(*refused)]), "share-needed")
+
+
+@pytest.mark.parametrize(
+    "refused",
+    [
+        pytest.param(
+            (7, 1, 2, 4, 2, (1, 2), 4.0, (4.5, 3.0)), id="none-ahead-told-as-two-different"
+        ),
+        pytest.param((7, 1, 2, 3, 1, (1,), 4.0, (4.0,)), id="one-as-many-waiting-as-long-told"),
+    ],
+)
+def test_a_refusal_whose_ahead_is_not_the_count_of_those_waiting_ahead_of_it_is_found(
+    refused: tuple[Any, ...],
+) -> None:
+    """Issue 68 item 8: the mutants of the order of those waiting (`provider.py:251`,
+    `other < (mine, since)` made `!=`, `is not`, `<=`) count more ahead than wait ahead: a
+    refusal kept a free slot for them, its `ahead` the server's. The check counts it itself
+    from those waiting that the refusal tells (schema 9): here none is ahead (one with as
+    many loads waiting a shorter time, or as long, one with more), and the slot was free."""
+    h = clean()
+    assert {4} == _found(renumbered([*h[:3], _share_refused(*refused)]), "share-needed")
 
 
 def _share_admitted(
@@ -1401,7 +1436,15 @@ def _plant(monkeypatch: pytest.MonkeyPatch, where: str, old: str, new: str) -> N
             "share = max(1, bound // len(consumers))",
             "share = max(1, bound >> len(consumers))",
             "share-needed",
-            id="the mutant provider.py:248 is caught by share-needed at simfair seed 1",
+            id="the mutant provider.py:246 is caught by share-needed at simfair seed 1",
+        ),
+        pytest.param(  # (all those waiting but one with its own count and wait counted ahead:
+            "simfair",  # refusals keep slots for them, the `ahead` share-needed counts itself)
+            "rr_actors._registrar.provider:Admission.refusal",
+            "ahead = sum(other < (mine, since) for",
+            "ahead = sum(other != (mine, since) for",
+            "share-needed",
+            id="the mutant provider.py:251 is caught by share-needed at simfair seed 1",
         ),
         pytest.param(  # (simshed's end stops its tree with `stop(parallel=True)`)
             "simshed",

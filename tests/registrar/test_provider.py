@@ -2179,9 +2179,9 @@ class TestOverload:
             assert [("greedy", n) for n in range(4)] == [h.result(20).response for h in held]
         assert subscription.wait_delivered(timeout=10)
         subscription.close()
-        # under way: 3 (greedy's 2, the other's 1) of 4; greedy's share 4 // 2; none ahead
-        assert [(greedy.name, 3, 2, 2, 2, 0, 4)] == [
-            (e.consumer, e.pending, e.under_way, e.share, e.consumers, e.ahead, e.bound)
+        # under way: 3 (greedy's 2, the other's 1) of 4; greedy's share 4 // 2; none waiting
+        assert [(greedy.name, 3, 2, 2, 2, 0, 4, ())] == [
+            (e.consumer, e.pending, e.under_way, e.share, e.consumers, e.ahead, e.bound, e.waiting)
             for e in told
         ]
         assert [(provider.name, "leaf")] == [(e.registrar, e.server) for e in told]

@@ -156,6 +156,24 @@ def test_a_resource_loaded_row_of_schema_7_is_read_without_its_trace(tmp_path: P
     assert [dataclasses.replace(loaded, trace="")] == read_told(path, 4242)
 
 
+def test_a_share_refused_row_of_schema_8_is_read_without_those_waiting(tmp_path: Path) -> None:
+    path = tmp_path / "p.db"
+    store, _ = opened(path)
+    store.close(erase=False)
+    refused = events.ShareRefused(
+        "erm", "leaf", "api", 5, 3, 2, 2, 1, 8, 0.5, (1,), (0.25,), pid=4242, seq=5
+    )
+    row = json.loads(outbox._row(refused))
+    assert [0.5, [1], [0.25]] == row[11:14]  # (after its type and 9 fields: schema 9's)
+    db = sqlite3.connect(path, isolation_level=None)
+    db.execute(
+        "INSERT INTO outbox VALUES (5, 4242, 5, ?)", (json.dumps([8, *row[1:11], *row[14:]]),)
+    )
+    db.close()
+
+    assert [dataclasses.replace(refused, since=0.0, waiting=(), firsts=())] == read_told(path, 4242)
+
+
 @pytest.mark.parametrize(
     "row",
     [
