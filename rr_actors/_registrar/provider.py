@@ -244,15 +244,13 @@ class Admission:
             self.wanting.pop(server, None)
         consumers = {*of, *wanting, origin}
         share = max(1, bound // len(consumers))
-        if pending < bound and mine < share and len(wanting) == (origin in wanting):
-            return None  # (taken, and no other consumer waits: nobody to share with)
         since, told = wanting.get(origin, (now, now))  # (`told`: when it is back, if later)
         others = [(of.get(n, 0), first) for n, (first, _) in wanting.items() if n != origin]
         ahead = sum(other < (mine, since) for other in others)  # (fewer under way, or longer)
         counts = (pending, mine, share, len(consumers), ahead, since)
         waits = (tuple(loads for loads, _ in others), tuple(first for _, first in others))
         if pending + ahead < bound and mine < share:  # (a free slot each kept for those)
-            return Share(False, *counts, *waits)  # (others wait: the early return's else)
+            return Share(False, *counts, *waits) if others else None
         self.wanting.setdefault(server, {})[origin] = (since, max(now, told))
         return Share(True, *counts, *waits)
 

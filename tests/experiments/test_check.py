@@ -1186,7 +1186,7 @@ def _overloaded(
 
 
 def test_a_server_told_overloaded_again_within_a_second_is_found() -> None:
-    """Issue 68 item 8: the mutant `provider.py:538` (`<` made `is`) publishes a
+    """Issue 68 item 8: the mutant `provider.py:536` (`<` made `is`) publishes a
     `ServerOverloaded` at every refusal, hundreds a second, where one a second is the bound;
     every seed of every plan held."""
     h = clean()
@@ -1289,7 +1289,7 @@ def test_a_refusal_at_a_consumers_share_or_behind_others_waiting_holds(
 def test_a_refusal_whose_ahead_is_not_the_count_of_those_waiting_ahead_of_it_is_found(
     refused: tuple[Any, ...],
 ) -> None:
-    """Issue 68 item 8: the mutants of the order of those waiting (`provider.py:251`,
+    """Issue 68 item 8: the mutants of the order of those waiting (`provider.py:249`,
     `other < (mine, since)` made `!=`, `is not`, `<=`) count more ahead than wait ahead: a
     refusal kept a free slot for them, its `ahead` the server's. The check counts it itself
     from those waiting that the refusal tells (schema 9): here none is ahead (one with as
@@ -1330,9 +1330,9 @@ def _share_admitted(
 def test_a_load_admitted_past_a_consumers_share_or_the_slot_kept_for_those_waiting_is_found(
     admitted: tuple[Any, ...],
 ) -> None:
-    """Issue 68 items 7-8: the mutants of the order of those waiting (`provider.py:251`,
+    """Issue 68 items 7-8: the mutants of the order of those waiting (`provider.py:249`,
     `other < (mine, since)` made `==`, `is`, `>`, ...) and of the admission's test
-    (`provider.py:254`, `pending + ahead < bound` made `-`, `<=`, `or`, ...) admit a load past
+    (`provider.py:252`, `pending + ahead < bound` made `-`, `<=`, `or`, ...) admit a load past
     the consumer's share, or into the free slot kept for a consumer waiting ahead of it."""
     h = clean()
     assert {4} == _found(renumbered([*h[:3], _share_admitted(*admitted)]), "share-kept")
@@ -1428,7 +1428,7 @@ def _plant(monkeypatch: pytest.MonkeyPatch, where: str, old: str, new: str) -> N
             "if now - last < _REFUSALS_EVERY:",
             "if now - last is _REFUSALS_EVERY:",
             "overload-paced",
-            id="the mutant provider.py:538 is caught by overload-paced at simoverload seed 1",
+            id="the mutant provider.py:536 is caught by overload-paced at simoverload seed 1",
         ),
         pytest.param(  # (a share of `bound >> consumers`: 5 >> 2, 1 where 2 is api's share)
             "simfair",
@@ -1444,7 +1444,7 @@ def _plant(monkeypatch: pytest.MonkeyPatch, where: str, old: str, new: str) -> N
             "ahead = sum(other < (mine, since) for",
             "ahead = sum(other != (mine, since) for",
             "share-needed",
-            id="the mutant provider.py:251 is caught by share-needed at simfair seed 1",
+            id="the mutant provider.py:249 is caught by share-needed at simfair seed 1",
         ),
         pytest.param(  # (simshed's end stops its tree with `stop(parallel=True)`)
             "simshed",
