@@ -20,7 +20,7 @@ import sqlite3
 import sys
 import threading
 import uuid
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
@@ -43,6 +43,7 @@ from rr_actors.testing import (
     intercept,
     run_on_actor,
 )
+from tests.registrar.conftest import Starter
 from tests.support.durable_pair import durable_config
 from tests.support.gating import GatedLoad
 from tests.support.supervising import ManualTimer, kill_and_wait_restarted, sigkill
@@ -1413,18 +1414,8 @@ class TestReconcileDueCall:
     """
 
     @pytest.fixture
-    def started(self) -> Iterator[Callable[[str], rr.ResourceRegistrar]]:
-        registrars: list[rr.ResourceRegistrar] = []
-
-        def start(prefix: str) -> rr.ResourceRegistrar:
-            name = f"{prefix}-{uuid.uuid4().hex[:8]}"
-            registrar = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=name))
-            registrars.append(registrar)
-            return registrar
-
-        yield start
-        for registrar in reversed(registrars):
-            registrar.stop()
+    def started(self, named_registrars: Starter) -> Starter:
+        return named_registrars  # (conftest's)
 
     def test_a_call_whose_load_leaves_after_the_reconcile_keeps_its_id(
         self,
