@@ -24,7 +24,7 @@ import pytest
 import rr_actors as rr
 from rr_actors._core import runtime
 from rr_actors.events.kinds import set_host, this_host
-from rr_actors_lab.experiments import PlanError, check, parse_plan, services, simulate
+from rr_actors_lab.experiments import PlanError, check, load_plan, parse_plan, services, simulate
 from rr_actors_lab.experiments.plan import Plan
 
 pytest.importorskip("greenlet")  # (the simulation extra)
@@ -155,7 +155,6 @@ def test_seeds_run_in_a_process_leave_no_file_open_without_the_garbage_collector
     run's objects (a log record's traceback) or a task that would not end (simslow's
     hung callback) held them for good (CI: one worker past 1024 descriptors)."""
     from rr_actors.simulation import _run  # noqa: PLC0415
-    from rr_actors_lab.experiments import load_plan  # noqa: PLC0415
 
     def open_files() -> int:
         return len(os.listdir("/proc/self/fd"))
@@ -351,8 +350,6 @@ def test_a_seed_that_meets_a_failed_write_gives_one_history_whatever_its_run_fol
 
 @SWEEP  # (8 runs of simretry: past 60 s in a CI at load 25)
 def test_a_seed_gives_the_same_history_alone_and_after_other_seeds_in_the_process() -> None:
-    from rr_actors_lab.experiments import load_plan  # noqa: PLC0415
-
     plan = load_plan(PLANS / "simretry.toml")
     # (seed 43 restarts api while two clients wait for it: with the tree's waits woken in
     # the order of their addresses, the runs before it changed which client went first)
@@ -823,8 +820,6 @@ def test_simslow_s_hung_callback_holds_back_its_id_s_next_statuses(
 ) -> None:
     # issue 51 finding 6: without per-id lanes, the watchdog gave up client-0's callback
     # after 50 ms and that id's next status ran beside it (every seed of 1-60 violated)
-    from rr_actors_lab.experiments import load_plan  # noqa: PLC0415
-
     plan = load_plan(PLANS / "simslow.toml")
 
     run = simulate.run_seed(plan, 1)
@@ -854,7 +849,6 @@ def test_simways_consumers_hear_each_life_s_statuses_in_the_order_sent(
     # issue 68 item 1: a life of db sends each client its first statuses on its own link,
     # then through a relay of their process; switched at once, the relay's overtook them
     from rr_actors._registrar.status import Unacknowledged  # noqa: PLC0415
-    from rr_actors_lab.experiments import load_plan  # noqa: PLC0415
 
     plan = load_plan(PLANS / "simways.toml")
 
@@ -871,8 +865,6 @@ def test_simways_consumers_hear_each_life_s_statuses_in_the_order_sent(
 
 @SWEEP
 def test_the_simheal_plan_holds_for_seeds_1_to_20() -> None:
-    from rr_actors_lab.experiments import load_plan  # noqa: PLC0415
-
     plan = load_plan(PLANS / "simheal.toml")
 
     runs = simulate.simulate(plan, range(1, 21))
@@ -887,8 +879,6 @@ def test_the_simnostate_plan_holds_for_seeds_1_to_30_its_releases_crossing_resta
     # the restart, which no longer knows its id; 3 of 30 seeds of simchain with
     # `state = false` were `kept` violations before its `QueryForgotten` said when the
     # release left against its consumer's last reconcile
-    from rr_actors_lab.experiments import load_plan  # noqa: PLC0415
-
     plan = load_plan(PLANS / "simnostate.toml")
 
     runs = simulate.simulate(plan, range(1, 31))
@@ -907,8 +897,6 @@ def test_the_simprogram_plan_holds_at_seed_1_its_killed_programs_client_ids_rele
     # longer hold. Without `Supervisor.registrar` telling them they lost everything
     # (b52ff0e6), or with it told through the directory, where a registrar just started
     # is "still starting" (the message dropped), this seed is `left` and `end` violations.
-    from rr_actors_lab.experiments import load_plan  # noqa: PLC0415
-
     plan = load_plan(PLANS / "simprogram.toml")
 
     run = simulate.run_seed(plan, 1)
@@ -940,8 +928,6 @@ def test_simprogram_seed_67_holds_a_release_committed_before_the_program_was_kil
     # under way; db released the dependency only at its reconcile, after api's restore).
     # (Seed 215 until a restart was told only to the manager processes that monitor it;
     # 125 before a restart was announced by its supervisor.)
-    from rr_actors_lab.experiments import load_plan  # noqa: PLC0415
-
     run = simulate.run_seed(load_plan(PLANS / "simprogram.toml"), 67)
 
     held([run])
@@ -966,8 +952,6 @@ def test_simnostate_seed_716_tells_fatal_for_a_held_id_whose_retry_failed_at_a_r
     # issue 68, finding 2: a client's retry of an id it held at api failed at api's restart
     # (no backup, its first loads raise); the client released the id at once, before the
     # reconcile its failure sent again was answered, and was never told FATAL (`kept`).
-    from rr_actors_lab.experiments import load_plan  # noqa: PLC0415
-
     run = simulate.run_seed(load_plan(PLANS / "simnostate.toml"), 716)
 
     held([run])
@@ -995,8 +979,6 @@ def test_simdoubt_seed_111_holds_a_status_lost_with_its_sender_killed_right_afte
     # The status-order fixes of the same issue moved seed 58's history: no seed of 1-300
     # reaches that exact shape now (the old rule holds them all), so the rule's own case is
     # test_check.py's; seed 111 still loses a status of db killed right after it, and holds.
-    from rr_actors_lab.experiments import load_plan  # noqa: PLC0415
-
     run = simulate.run_seed(load_plan(PLANS / "simdoubt.toml"), 111)
 
     held([run])
@@ -1020,8 +1002,6 @@ def test_simrest_seed_5_holds_a_dependency_call_cut_by_its_callers_stop() -> Non
     # answer, error or withdrawal at web. Its next life reported the load in doubt and api
     # released the id at their reconcile. `outcome` read web's stop as one that answers or
     # withdraws all in flight: violated (found 2026-11-27, the rule's day).
-    from rr_actors_lab.experiments import load_plan  # noqa: PLC0415
-
     run = simulate.run_seed(load_plan(PLANS / "simrest.toml"), 5)
 
     held([run])
@@ -1100,8 +1080,6 @@ def test_a_root_give_up_stops_no_provider_holding_a_stopped_dependents_load_unde
     # id of web's load under way (`end`; found 2026-11-28 by shrinking simrest seed 5).
     # Seeds 1-40 of this plan: 8 violated (11, 15, 16, 23, 25, 29, 34, 38); now none: a
     # root give-up tells each manager the stops before its own, as a tree's stop does.
-    from rr_actors_lab.experiments import load_plan  # noqa: PLC0415
-
     path = tmp_path / "plan.toml"
     path.write_text(GIVE_UP)
     runs = [simulate.run_seed(load_plan(path), seed) for seed in (11, 15, 16)]
@@ -1248,8 +1226,6 @@ def test_simkept_clients_never_retry_and_an_id_kept_for_them_goes_back_after_cal
     """`retry = false`: a call in flight at api's kill fails once, `may_have_executed`; the
     restart restores its id and keeps it for a retry none makes, then gives it back (its
     `Abandon`) after the client's `call_timeout` (1 s) counted from their reconcile."""
-    from rr_actors_lab.experiments import load_plan  # noqa: PLC0415
-
     run = simulate.run_seed(load_plan(PLANS / "simkept.toml"), 1)
 
     h = [json.loads(line) for line in run.history.splitlines() if line.startswith('{"')]
@@ -1285,8 +1261,6 @@ def test_every_shipped_plan_is_simulated_or_refused_here() -> None:
 @SWEEP
 @pytest.mark.parametrize("name", SIMULATED)
 def test_a_shipped_plan_holds_on_the_simulation(name: str) -> None:
-    from rr_actors_lab.experiments import load_plan  # noqa: PLC0415
-
     plan = load_plan(PLANS / f"{name}.toml")
 
     runs = simulate.simulate(plan, range(1, 3))
@@ -1297,8 +1271,6 @@ def test_a_shipped_plan_holds_on_the_simulation(name: str) -> None:
 
 @SWEEP
 def test_killheavy_runs_its_kills_and_cuts_on_the_simulation() -> None:
-    from rr_actors_lab.experiments import load_plan  # noqa: PLC0415
-
     plan = load_plan(PLANS / "killheavy.toml").with_changes(duration=2.0)
 
     run = simulate.run_seed(plan, 1)
@@ -1310,8 +1282,6 @@ def test_killheavy_runs_its_kills_and_cuts_on_the_simulation() -> None:
 
 @SWEEP
 def test_the_big_tree_of_200_managers_holds_on_the_simulation() -> None:
-    from rr_actors_lab.experiments import load_plan  # noqa: PLC0415
-
     plan = load_plan(PLANS / "bigtree.toml")
 
     run = simulate.run_seed(plan, 1)
@@ -1326,8 +1296,6 @@ def test_the_big_tree_of_200_managers_holds_on_the_simulation() -> None:
 
 @SWEEP
 def test_a_compared_plan_runs_its_first_value_and_each_value_as_its_own_plan() -> None:
-    from rr_actors_lab.experiments import load_plan  # noqa: PLC0415
-
     plan = load_plan(PLANS / "first.toml")
     (first, as_read), (second, other) = plan.variants
 
@@ -1347,8 +1315,6 @@ def test_a_compared_plan_runs_its_first_value_and_each_value_as_its_own_plan() -
 def test_a_shipped_plan_the_simulation_does_not_model_is_a_plan_error_naming_it(
     name: str, key: str, named: str
 ) -> None:
-    from rr_actors_lab.experiments import load_plan  # noqa: PLC0415
-
     with pytest.raises(PlanError) as raised:
         simulate.simulate(load_plan(PLANS / f"{name}.toml"), range(1))
 
@@ -1581,8 +1547,6 @@ def test_a_cut_between_two_of_three_hosts_is_refused_naming_partition() -> None:
 
 @SWEEP
 def test_each_simulated_host_names_its_events_so_a_loss_across_hosts_is_judged_so() -> None:
-    from rr_actors_lab.experiments import load_plan  # noqa: PLC0415
-
     plan = load_plan(PLANS / "simhosts.toml")  # (cuts past its lease: db lost across)
 
     run = simulate.run_seed(plan, 5)  # (a client tells itself FATAL while db runs on)

@@ -182,6 +182,8 @@ def shared(registrar_placement: str, process_helpers: SharedObjects) -> Shared:
 
 Registrar = rr.ResourceRegistrar | RemoteRegistrar
 MakeRegistrar = Callable[..., Registrar]
+Starter = Callable[..., rr.ResourceRegistrar]
+"""`named_registrars`: start a registrar of this process by a prefix of its name."""
 
 
 def placement_network(placement: str) -> System | rr.ZenohNetwork:
@@ -239,6 +241,24 @@ def make_registrar(
         system.close()
     if errors:
         pytest.fail(f"stopping the test's registrars failed: {errors!r}")
+
+
+@pytest.fixture
+def named_registrars() -> Iterator[Starter]:
+    """Start registrars in this process, named `<prefix>-<8 hex>` (keyword arguments are
+    `RegistrarConfig` fields): `named_registrars("erm", call_timeout=5.0)`. Stopped newest
+    first at teardown."""
+    registrars: list[rr.ResourceRegistrar] = []
+
+    def start(prefix: str, **config: Any) -> rr.ResourceRegistrar:
+        name = f"{prefix}-{uuid.uuid4().hex[:8]}"
+        registrar = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=name, **config))
+        registrars.append(registrar)
+        return registrar
+
+    yield start
+    for registrar in reversed(registrars):
+        registrar.stop()
 
 
 # -- recording servers and status inboxes ------------------------------------------------------

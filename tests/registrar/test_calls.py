@@ -39,6 +39,7 @@ from rr_actors.testing import (
     pending_work,
     run_on_actor,
 )
+from tests.registrar.conftest import Starter
 from tests.support.gating import GatedLoad
 
 # -- for TestCallAttempt -------------------------------------------------------------------
@@ -694,19 +695,8 @@ class TestRaces:
     """Calls racing a stop, a give-up, a retry, or a store that cannot hold a value."""
 
     @pytest.fixture
-    def started(self) -> Iterator[Callable[..., rr.ResourceRegistrar]]:
-        """Start registrars with unique names; stop them all at the end."""
-        registrars: list[rr.ResourceRegistrar] = []
-
-        def start(prefix: str, **config: Any) -> rr.ResourceRegistrar:
-            name = f"{prefix}-{uuid.uuid4().hex[:8]}"
-            registrar = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=name, **config))
-            registrars.append(registrar)
-            return registrar
-
-        yield start
-        for registrar in reversed(registrars):
-            registrar.stop()
+    def started(self, named_registrars: Starter) -> Starter:
+        return named_registrars  # (conftest's)
 
     def test_stopping_a_provider_fails_the_calls_waiting_on_its_loads_at_once(
         self, started: Any

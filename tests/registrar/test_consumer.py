@@ -20,7 +20,7 @@ import sqlite3
 import sys
 import threading
 import uuid
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
@@ -43,6 +43,7 @@ from rr_actors.testing import (
     intercept,
     run_on_actor,
 )
+from tests.registrar.conftest import Starter
 from tests.support.durable_pair import durable_config
 from tests.support.gating import GatedLoad
 from tests.support.supervising import ManualTimer, kill_and_wait_restarted, sigkill
@@ -1325,6 +1326,75 @@ class TestReconcileAsked:
             assert ((True, True, False), ()) == (run.value, tuple(run.errors)), f"seed {seed}"
 
 
+def _fail_a_held_id_s_retry_at_its_empty_restart(
+    started: Callable[[str], rr.ResourceRegistrar], *, release_at_once: bool
+) -> None:
+    """A retry of an id the consumer holds is due as the provider's restart (empty, no backup)
+    reconciles, so the id is doubted; the retry then fails there. With `release_at_once` the
+    caller releases the id as soon as it has the failure, and the reconcile again the failure
+    sends is answered only once that release left. Either way the id is told FATAL and
+    forgotten, and no doubt is left."""
+    provider, consumer = started("prov"), started("cons")
+    name = provider.name
+    provider.register_server("leaf", load=lambda r: r, unload=lambda _r, _s: None)
+    statuses: list[rr.Status] = []
+    qid = str(uuid.uuid4())
+    consumer.call(
+        name, "leaf", "held", query_id=qid, on_status=lambda _q, u: statuses.append(u.status)
+    )
+    due, restarted, reconciled = threading.Event(), threading.Event(), threading.Event()
+    released = threading.Event()
+
+    def hold(load: Any) -> None:
+        if load.query_id == qid:  # due now; its Load leaves once the restart reconciled
+            due.set()
+            assert restarted.wait(10)
+
+    def hold_again(message: Any) -> None:
+        if restarted.is_set() and qid in message.held:  # (the reconcile the failure sent:
+            assert released.wait(10)  # answered once the release left)
+
+    def refuse(_request: Any) -> Any:
+        raise RuntimeError("the device is gone")
+
+    back = None
+    try:
+        with intercept(consumer, "send_load", before=hold), ThreadPoolExecutor(1) as pool:
+            retry = pool.submit(consumer.call, name, "leaf", "held", query_id=qid, timeout=10)
+            assert due.wait(10)
+            with expect_restart(name):
+                crash(provider)
+            back = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=name))
+            back.register_server("leaf", load=refuse, unload=lambda _r, _s: None)
+            with intercept(back, "reconcile", after=lambda _m: reconciled.set()):
+                life.lost_everything(name)  # (as its supervisor says: restarted empty)
+                assert reconciled.wait(10)
+                consumer.client_queries()  # (the Reconcile's answer was handled)
+            assert {qid: {name}} == consumer._actor.ref.proxy().shared.get().flights.doubted
+            with contextlib.ExitStack() as held:
+                if release_at_once:
+                    held.enter_context(intercept(back, "reconcile", before=hold_again))
+                    held.enter_context(
+                        intercept(consumer, "release", after=lambda _m: released.set())
+                    )
+                restarted.set()  # the retry leaves, to the restart, and fails there
+                with pytest.raises(rr.ResourceLoadError):
+                    retry.result(10)
+                if release_at_once:
+                    with contextlib.suppress(rr.UnknownQueryError):  # (forgotten as lost)
+                        consumer.unload(qid)  # its caller releases it at once
+                    released.set()
+
+        assert wait_for(lambda: rr.Status.FATAL in statuses)
+        assert qid not in [q.id for q in consumer.client_queries()]
+        assert {} == consumer._actor.ref.proxy().shared.get().flights.doubted
+    finally:
+        restarted.set()
+        released.set()
+        if back is not None:
+            back.stop()
+
+
 class TestReconcileDueCall:
     """Rule 20: what a consumer's `Reconcile` lists, and what it makes of the answer.
 
@@ -1344,18 +1414,8 @@ class TestReconcileDueCall:
     """
 
     @pytest.fixture
-    def started(self) -> Iterator[Callable[[str], rr.ResourceRegistrar]]:
-        registrars: list[rr.ResourceRegistrar] = []
-
-        def start(prefix: str) -> rr.ResourceRegistrar:
-            name = f"{prefix}-{uuid.uuid4().hex[:8]}"
-            registrar = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=name))
-            registrars.append(registrar)
-            return registrar
-
-        yield start
-        for registrar in reversed(registrars):
-            registrar.stop()
+    def started(self, named_registrars: Starter) -> Starter:
+        return named_registrars  # (conftest's)
 
     def test_a_call_whose_load_leaves_after_the_reconcile_keeps_its_id(
         self,
@@ -1492,49 +1552,7 @@ class TestReconcileDueCall:
         # (empty, no backup) reconciled, so the id was doubted; the retry then failed, and its
         # failure dropped the doubt: the consumer kept an id its provider did not know, and no
         # FATAL was told (its `unload` raised `UnknownQueryError` later)
-        provider, consumer = started("prov"), started("cons")
-        name = provider.name
-        provider.register_server("leaf", load=lambda r: r, unload=lambda _r, _s: None)
-        statuses: list[rr.Status] = []
-        qid = str(uuid.uuid4())
-        consumer.call(
-            name, "leaf", "held", query_id=qid, on_status=lambda _q, u: statuses.append(u.status)
-        )
-        due, restarted, reconciled = threading.Event(), threading.Event(), threading.Event()
-
-        def hold(load: Any) -> None:
-            if load.query_id == qid:  # due now; its Load leaves once the restart reconciled
-                due.set()
-                assert restarted.wait(10)
-
-        def refuse(_request: Any) -> Any:
-            raise RuntimeError("the device is gone")
-
-        back = None
-        try:
-            with intercept(consumer, "send_load", before=hold), ThreadPoolExecutor(1) as pool:
-                retry = pool.submit(consumer.call, name, "leaf", "held", query_id=qid, timeout=10)
-                assert due.wait(10)
-                with expect_restart(name):
-                    crash(provider)
-                back = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=name))
-                back.register_server("leaf", load=refuse, unload=lambda _r, _s: None)
-                with intercept(back, "reconcile", after=lambda _m: reconciled.set()):
-                    life.lost_everything(name)  # (as its supervisor says: restarted empty)
-                    assert reconciled.wait(10)
-                    consumer.client_queries()  # (the Reconcile's answer was handled)
-                assert {qid: {name}} == consumer._actor.ref.proxy().shared.get().flights.doubted
-                restarted.set()  # the retry leaves, to the restart, and fails there
-                with pytest.raises(rr.ResourceLoadError):
-                    retry.result(10)
-
-            assert wait_for(lambda: rr.Status.FATAL in statuses)
-            assert qid not in [q.id for q in consumer.client_queries()]
-            assert {} == consumer._actor.ref.proxy().shared.get().flights.doubted
-        finally:
-            restarted.set()
-            if back is not None:
-                back.stop()
+        _fail_a_held_id_s_retry_at_its_empty_restart(started, release_at_once=False)
 
     def test_a_failed_retry_of_a_held_id_its_restart_knew_not_is_fatal_before_its_release(
         self,
@@ -1543,61 +1561,7 @@ class TestReconcileDueCall:
         # issue 68, `simnostate` seed 716: as above, but the caller, handed the retry's
         # failure, released the id at once; the reconcile again that the failure sent was
         # answered after that release left, and skipped the id being released: never FATAL
-        provider, consumer = started("prov"), started("cons")
-        name = provider.name
-        provider.register_server("leaf", load=lambda r: r, unload=lambda _r, _s: None)
-        statuses: list[rr.Status] = []
-        qid = str(uuid.uuid4())
-        consumer.call(
-            name, "leaf", "held", query_id=qid, on_status=lambda _q, u: statuses.append(u.status)
-        )
-        due, restarted, reconciled = threading.Event(), threading.Event(), threading.Event()
-        released = threading.Event()
-
-        def hold(load: Any) -> None:
-            if load.query_id == qid:  # due now; its Load leaves once the restart reconciled
-                due.set()
-                assert restarted.wait(10)
-
-        def hold_again(message: Any) -> None:
-            if restarted.is_set() and qid in message.held:  # (the reconcile the failure sent:
-                assert released.wait(10)  # answered once the release left)
-
-        def refuse(_request: Any) -> Any:
-            raise RuntimeError("the device is gone")
-
-        back = None
-        try:
-            with intercept(consumer, "send_load", before=hold), ThreadPoolExecutor(1) as pool:
-                retry = pool.submit(consumer.call, name, "leaf", "held", query_id=qid, timeout=10)
-                assert due.wait(10)
-                with expect_restart(name):
-                    crash(provider)
-                back = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=name))
-                back.register_server("leaf", load=refuse, unload=lambda _r, _s: None)
-                with intercept(back, "reconcile", after=lambda _m: reconciled.set()):
-                    life.lost_everything(name)  # (as its supervisor says: restarted empty)
-                    assert reconciled.wait(10)
-                    consumer.client_queries()  # (the Reconcile's answer was handled)
-                assert {qid: {name}} == consumer._actor.ref.proxy().shared.get().flights.doubted
-                with (
-                    intercept(back, "reconcile", before=hold_again),
-                    intercept(consumer, "release", after=lambda _m: released.set()),
-                ):
-                    restarted.set()  # the retry leaves, to the restart, and fails there
-                    with pytest.raises(rr.ResourceLoadError):
-                        retry.result(10)
-                    with contextlib.suppress(rr.UnknownQueryError):  # (forgotten as lost)
-                        consumer.unload(qid)  # its caller releases it at once
-                    released.set()
-
-            assert wait_for(lambda: rr.Status.FATAL in statuses)
-            assert qid not in [q.id for q in consumer.client_queries()]
-        finally:
-            restarted.set()
-            released.set()
-            if back is not None:
-                back.stop()
+        _fail_a_held_id_s_retry_at_its_empty_restart(started, release_at_once=True)
 
     def test_a_held_id_lost_at_reconcile_is_told_fatal_though_its_retry_started_meanwhile(
         self,

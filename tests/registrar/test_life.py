@@ -247,10 +247,10 @@ class _Noted:
 # -- for TestMembership --------------------------------------------------------------------
 
 
-def _backed(name: str, tmp_path: Path) -> rr.RegistrarConfig:
-    return rr.RegistrarConfig(
-        name=name, backup_path=str(tmp_path / f"{name}.db"), save_on_modify=True
-    )
+def _backed(name: str, tmp_path: Path, **config: Any) -> rr.RegistrarConfig:
+    """`name`'s config, saved on modify to `<tmp_path>/<name>.db` (`config`: more fields)."""
+    path = str(tmp_path / f"{name}.db")
+    return rr.RegistrarConfig(name=name, backup_path=path, save_on_modify=True, **config)
 
 
 # -- for TestProviderLost ------------------------------------------------------------------
@@ -1398,10 +1398,7 @@ class TestProviderLost:
         # the provider restarted from its backup has heard of no run of the consumer (its ask
         # to reconcile was lost): a late Reconcile of whichever run came "later than none"
         unloads: list[str] = []
-        path = str(tmp_path / "provider.db")
-        config = rr.RegistrarConfig(
-            named("provider"), call_timeout=600.0, backup_path=path, save_on_modify=True
-        )
+        config = _backed(named("provider"), tmp_path, call_timeout=600.0)
         provider = rr.ResourceRegistrar.start(config, setup=leaf_setup(unloads), network=system)
         consumer = rr.ResourceRegistrar.start(named("consumer"), network=system)
         started.append(consumer)
@@ -1443,10 +1440,7 @@ class TestProviderLost:
         # answer to round 1 of its earlier run (late, or a retry) passed for the answer to
         # round 1 of this one and cleared the ask: nobody answered it, the id stayed held
         unloads: list[str] = []
-        path = str(tmp_path / "provider.db")
-        config = rr.RegistrarConfig(
-            named("provider"), call_timeout=600.0, backup_path=path, save_on_modify=True
-        )
+        config = _backed(named("provider"), tmp_path, call_timeout=600.0)
         provider = rr.ResourceRegistrar.start(config, setup=leaf_setup(unloads), network=system)
         consumer = rr.ResourceRegistrar.start(named("consumer"), network=system)
         started.append(consumer)

@@ -239,6 +239,32 @@ class SlowlyCompared:
         return hash(self.n)
 
 
+def _unload_a_composite_of_a_slow_leaf(
+    consumer: Any, agent: Any, producer: Any, leaf_done: Any, composite_started: Any, seen: Any
+) -> None:
+    """Rule 7's order: `agent`'s composite loads `producer`'s leaf, and `consumer` releases
+    the composite. The leaf's unload stays busy until the composite's unload started (one
+    second at most: what the right order costs); the composite's unload appends to `seen`
+    whether the leaf's had finished (right: `[True]`)."""
+
+    def leaf_unload(request, response):
+        composite_started.wait(1.0)  # in the right order nothing sets it: time out, finish
+        leaf_done.set()
+
+    def composite_unload(request, response):
+        seen.append(leaf_done.is_set())
+        composite_started.set()
+
+    producer.register_server("leaf", load=lambda r: r, unload=leaf_unload)
+    agent.register_server(
+        "composite",
+        load=lambda r: agent.call(producer.name, "leaf", r).response,
+        unload=composite_unload,
+    )
+    query = consumer.call(agent.name, "composite", "x")
+    consumer.unload(query.id)
+
+
 class TestLoad:
     """Loading and dedup (DESIGN rules 1-3)."""
 
@@ -651,27 +677,12 @@ class TestUnload:
         one second, which is what the correct order costs), so a composite unload that does not
         wait always sees an unfinished dependency.
         """
-        consumer, agent, producer = (make_registrar(n) for n in ("consumer", "agent", "producer"))
-        leaf_done, composite_started = shared.event(), shared.event()
+        registrars = [make_registrar(n) for n in ("consumer", "agent", "producer")]
         leaf_done_when_composite_started = shared.list()
 
-        def leaf_unload(request, response):
-            composite_started.wait(1.0)  # in the right order nothing sets it: time out, finish
-            leaf_done.set()
-
-        def composite_unload(request, response):
-            leaf_done_when_composite_started.append(leaf_done.is_set())
-            composite_started.set()
-
-        producer.register_server("leaf", load=lambda r: r, unload=leaf_unload)
-        agent.register_server(
-            "composite",
-            load=lambda r: agent.call(producer.name, "leaf", r).response,
-            unload=composite_unload,
+        _unload_a_composite_of_a_slow_leaf(
+            *registrars, shared.event(), shared.event(), leaf_done_when_composite_started
         )
-        query = consumer.call(agent.name, "composite", "x")
-
-        consumer.unload(query.id)
 
         assert [True] == leaf_done_when_composite_started
 
@@ -683,32 +694,10 @@ class TestUnload:
         unloads (and the registrars' threads) another way."""
 
         def scenario() -> dict[str, Any]:
-            consumer, agent, producer = (
-                rr.ResourceRegistrar.start(name) for name in ("consumer", "agent", "producer")
-            )
-            leaf_done, composite_started = runtime.Event(), runtime.Event()
-            leaf_done_when_composite_started: list[bool] = []
-
-            def leaf_unload(request, response):
-                composite_started.wait(1.0)  # in the right order nothing sets it: time out
-                leaf_done.set()
-
-            def composite_unload(request, response):
-                leaf_done_when_composite_started.append(leaf_done.is_set())
-                composite_started.set()
-
-            producer.register_server("leaf", load=lambda r: r, unload=leaf_unload)
-            agent.register_server(
-                "composite",
-                load=lambda r: agent.call(producer.name, "leaf", r).response,
-                unload=composite_unload,
-            )
-            query = consumer.call(agent.name, "composite", "x")
-            consumer.unload(query.id)
-            return {
-                "seen": leaf_done_when_composite_started,
-                "clean": simulated.stopped_clean(consumer, agent, producer),
-            }
+            registrars = [rr.ResourceRegistrar.start(n) for n in ("consumer", "agent", "producer")]
+            seen: list[bool] = []
+            _unload_a_composite_of_a_slow_leaf(*registrars, runtime.Event(), runtime.Event(), seen)
+            return {"seen": seen, "clean": simulated.stopped_clean(*registrars)}
 
         assert [] == simulated.seeds_where(
             scenario, lambda run: [True] != run["seen"] or not run["clean"]

@@ -38,7 +38,7 @@ from rr_actors.testing import (
     intercept,
     run_on_actor,
 )
-from tests.registrar.conftest import ManagerProvider
+from tests.registrar.conftest import ManagerProvider, Starter
 from tests.support.gating import GatedLoad
 from tests.support.heard import Heard
 from tests.support.small_disk import fill, mounted
@@ -145,18 +145,8 @@ class TestEvents:
     """A registrar's event stream: each kind of event, in order, and never slowing the registrar."""
 
     @pytest.fixture
-    def started(self) -> Iterator[Callable[..., rr.ResourceRegistrar]]:
-        made: list[rr.ResourceRegistrar] = []
-
-        def start(prefix: str, **config: Any) -> rr.ResourceRegistrar:
-            name = f"{prefix}-{uuid.uuid4().hex[:8]}"
-            registrar = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=name, **config))
-            made.append(registrar)
-            return registrar
-
-        yield start
-        for registrar in reversed(made):
-            registrar.stop()
+    def started(self, named_registrars: Starter) -> Starter:
+        return named_registrars  # (conftest's)
 
     def test_a_load_a_shared_load_and_the_unloads_are_published_in_order(
         self, started: Any

@@ -166,39 +166,13 @@ def test_awaited_retries_wait_out_a_killed_providers_restart_with_no_thread_each
     assert ("running", 1) == (info.state, info.restarts)
 
 
-def test_an_awaited_retry_cancelled_while_its_provider_restarts_abandons_its_id(
+def test_an_awaited_retry_cancelled_while_its_provider_restarts_abandons_its_id_withdrawn(
     uid: str, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    # Withdrawn as a timed-out one is: the id is kept for the provider's next start,
-    # which releases it there if its restored catalog holds it.
-    name = f"p-{uid}"
-    timer = ManualTimer()
-    sup = rr.Supervisor([rr.ManagerSpec(name)], backoff=rr.Backoff(initial=1.0), timer=timer)
-
-    async def main(app: rr.ResourceRegistrar) -> None:
-        waiting = _counting_restart_waits(sup, monkeypatch, 1)
-        task = asyncio.ensure_future(
-            sup.acall_with_retry(app, name, "res", "camera", timeout=30, query_id="q-1")
-        )
-        await asyncio.wait_for(waiting.wait(), 10)
-        task.cancel()
-        with pytest.raises(asyncio.CancelledError):
-            await task
-
-    with sup:
-        app = sup.registrar(f"app-{uid}")
-        crash(sup, name)
-        assert timer.wait_scheduled(1)
-        asyncio.run(main(app))
-
-        assert {name: [("q-1", app.name)]} == sup._tree.abandon_later
-
-
-def test_an_awaited_retry_cancelled_while_its_provider_restarts_publishes_its_withdrawal(
-    uid: str, monkeypatch: pytest.MonkeyPatch
-) -> None:
-    """Its `CallWithdrawn` ("interrupted"), as a call cancelled in flight has: it had none
-    (the outcome and kept rules read it)."""
+    """Withdrawn as a timed-out one is: the id is kept for the provider's next start, which
+    releases it there if its restored catalog holds it; and its `CallWithdrawn`
+    ("interrupted") is published, as a call cancelled in flight has: it had none (the
+    outcome and kept rules read it)."""
     name = f"p-{uid}"
     timer = ManualTimer()
     sup = rr.Supervisor([rr.ManagerSpec(name)], backoff=rr.Backoff(initial=1.0), timer=timer)
@@ -222,6 +196,7 @@ def test_an_awaited_retry_cancelled_while_its_provider_restarts_publishes_its_wi
             asyncio.run(main(app))
 
             assert seen.wait(10.0)
+            assert {name: [("q-1", app.name)]} == sup._tree.abandon_later
     assert [("q-1", name, "interrupted")] == [
         (e.query_id, e.serving_rr, e.reason) for e in withdrawn
     ]
