@@ -296,7 +296,8 @@ class Facts:
         released: (provider, query id) -> `(unload_sent, reconciled)` of that `QueryForgotten`
             if forgotten on the answer to its release.
         fatal: query id -> the line of the first `FATAL` its holder was told.
-        fatal_at: query id -> the stamp of that `FATAL`.
+        fatal_at: query id -> the stamps of every `FATAL` its holder was told, in order (an id
+            called again once forgotten may be lost again).
         added: query ids some provider added (`ConsumerAdded`, or a catalog's rows).
         held_at: query id -> (provider, resource id, line of its `ConsumerAdded` or row).
         held_on: query id -> `(stamp, provider, resource id, line)` of each of those, in order
@@ -323,7 +324,7 @@ class Facts:
     forgets: dict[tuple[str, str], list[int]] = dataclasses.field(default_factory=dict)
     released: dict[tuple[str, str], tuple[int, int]] = dataclasses.field(default_factory=dict)
     fatal: dict[str, int] = dataclasses.field(default_factory=dict)
-    fatal_at: dict[str, int] = dataclasses.field(default_factory=dict)
+    fatal_at: dict[str, list[int]] = dataclasses.field(default_factory=dict)
     added: set[str] = dataclasses.field(default_factory=set)
     held_at: dict[str, tuple[str, str, int]] = dataclasses.field(default_factory=dict)
     held_on: dict[str, list[tuple[int, str, str, int]]] = dataclasses.field(default_factory=dict)
@@ -367,7 +368,7 @@ def gather(history: Sequence[Line]) -> Facts:  # noqa: PLR0912, PLR0915 - a bran
         elif isinstance(event, events.StatusDelivered):
             if event.status is Status.FATAL:
                 facts.fatal.setdefault(event.query_id, line)
-                facts.fatal_at.setdefault(event.query_id, event.hlc)
+                facts.fatal_at.setdefault(event.query_id, []).append(event.hlc)
             if event.status_id:
                 facts.delivered.add((event.status_id, event.query_id))
                 last = facts.last_delivery.get(event.status_id, event.hlc)

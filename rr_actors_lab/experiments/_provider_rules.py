@@ -340,8 +340,7 @@ class Providers:
                 continue
             if self.released_before_kill(name, held.consumer, qid, stamp):
                 continue
-            told = self.fatal_at.get(qid)
-            if told is None or told < held.stamp:
+            if not any(told >= held.stamp for told in self.fatal_at.get(qid, ())):
                 self.found(
                     "kept",
                     f"{name}: query {qid[:8]} of {held.consumer} (resource "

@@ -2119,6 +2119,15 @@ def test_an_id_held_again_once_forgotten_is_owed_a_fatal_when_a_restart_loses_it
     told = [events.StatusDelivered("cm", Q1, rr.Status.FATAL, 1, 0.0, "s9", pid=C)]
     _holds(_stamped([*h[:3], forgot, *gone, *anew, h[3], *told, restart]))
     assert {8, 11} == _found(_stamped([*h[:3], forgot, *gone, *anew, h[3], restart]), "kept")
+    # `simnostate` seed 30: the first holding was lost too, told FATAL at its reconcile; the
+    # second's loss is owed a FATAL of its own, after its answer
+    lost = [events.ChildExited("sup", "erm", P, "killed by SIGKILL"), h[7], h[8]]
+    again = [*(dataclasses.replace(e, pid=P + 1) for e in anew[:2]), h[2]]
+    second = [events.ChildExited("sup", "erm", P + 1, "killed by SIGKILL")]
+    restart = dataclasses.replace(restart, pid=P + 2)
+    told = [dataclasses.replace(told[0], status_id="s10")]
+    _holds(_stamped([*h[:3], *lost, *again, *second, *told, restart]))
+    assert {8, 11} == _found(_stamped([*h[:3], *lost, *again, *second, restart]), "kept")
 
 
 def retried_at_the_restart(*, answered: bool) -> list[events.Event]:
