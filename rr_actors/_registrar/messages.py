@@ -45,6 +45,7 @@ from rr_actors.errors import (
     ErrorFrame,
     ResourceLoadError,
     RrError,
+    UnknownQueryError,
 )
 
 _CLOCK = PLATFORM.monotonic_clock()
@@ -130,7 +131,7 @@ class Load(WireMessage):
 class Unload(WireMessage):
     """Consumer -> provider: release consumer id `query_id` (`trace`: its CLIENT span's).
     Answer: the statuses still on their way to it (`StatusOnItsWay`s, rule 9), an
-    `UnloadOverran` (released, its `unload` overran), or an error (nothing released)."""
+    `UnloadOverran` (released, its `unload` overran; or before), or an error (not released)."""
 
     query_id: str
     origin_rr: str
@@ -239,11 +240,11 @@ class StatusOnItsWay:
 
 @dataclasses.dataclass(frozen=True)
 class UnloadOverran:
-    """An `Unload` answer: released, but the `unload` overran (`error`); with the statuses
-    still on their way (rule 9)."""
+    """An `Unload` answer: released, but the `unload` overran (`error`), or by an earlier
+    `Unload` (an `UnknownQueryError`); with the statuses still on their way (rule 9)."""
 
     on_its_way: tuple[StatusOnItsWay, ...]
-    error: CallTimeoutError
+    error: CallTimeoutError | UnknownQueryError
 
 
 @dataclasses.dataclass(frozen=True)

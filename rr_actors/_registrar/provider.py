@@ -1256,12 +1256,14 @@ class Unloading:
         query_id, unacked = message.query_id, self.registrar.unacked
 
         def answered(_value: Any, error: BaseException | None) -> None:
-            if isinstance(error, CallTimeoutError):
-                reply.set_result(UnloadOverran(unacked.take(query_id), error))
+            carried = unacked.of(query_id)
+            overran = isinstance(error, CallTimeoutError)  # (unknown: released by a killed life)
+            if isinstance(error, CallTimeoutError | UnknownQueryError) and (overran or carried):
+                reply.set_result(UnloadOverran(carried, error))
             elif error is not None:
                 reply.set_error(error)
             else:
-                reply.set_result(unacked.take(query_id))
+                reply.set_result(carried)
 
         if self.held_by_another(query_id, message.origin_rr):
             reply.set_error(

@@ -13,7 +13,7 @@ path to the top (rule 9, thesis 4.2.4).
    any other id ─► a StatusNotice ─► on_status_notice ─► callbacks; a dependency ─►
      notify(its parent resource) ─► ... to the top
  acknowledgements: one SharedJoin per status; one sent to another process waits in
-   Unacknowledged until acknowledged, or taken by the answer to that id's Unload
+   Unacknowledged until acknowledged; each answer to that id's Unload carries them
 ```
 
 Why a `FATAL` marks only its own resource, how each status reaches an id once, and how
@@ -1191,10 +1191,10 @@ class Unacknowledged:
                         if not waiting:
                             del self._of[query_id]
 
-    def take(self, query_id: str) -> tuple[StatusOnItsWay, ...]:
-        """The statuses still on their way to `query_id`, in the order they left (taken now)."""
+    def of(self, query_id: str) -> tuple[StatusOnItsWay, ...]:
+        """The statuses still on their way to `query_id`, in the order they left (kept)."""
         with self._lock:
-            return tuple(status for status, _to in self._of.pop(query_id, {}).values())
+            return tuple(status for status, _to in self._of.get(query_id, {}).values())
 
 
 forkserver.after_fork_in_child("the status desk", DESK.forget_in_child)

@@ -995,6 +995,33 @@ def test_simdoubt_seed_111_holds_a_status_lost_with_its_sender_killed_right_afte
 
 
 @SWEEP
+def test_simshare_seed_27_holds_a_status_the_answer_to_a_killed_lifes_unload_took() -> None:
+    # api was SIGKILLed while it unloaded a resource, its Unload of the dependency at db on
+    # its way; its restart released the id again. db sent a status to it, then released the
+    # id on the killed life's Unload, whose answer carried the status to the dead life; the
+    # restart's Unload, unknown there, carried nothing (`Unacknowledged.take` had emptied
+    # it), and api forgot the id before the status came its own way: `status-reached`.
+    run = simulate.run_seed(load_plan(PLANS / "simshare.toml"), 27)
+
+    held([run])
+    restarts = {e["pid"] for e in lines(run, "ChildRestarted") if e["child"] == "api"}
+    forgot = {
+        e["query_id"]: e["pid"]
+        for e in lines(run, "QueryForgotten")
+        if e["registrar"] == "api" and e["reason"] == "dependency" and e["pid"] in restarts
+    }
+    sent = {e["status_id"]: e["hlc"] for e in lines(run, "StatusSent") if e["registrar"] == "db"}
+    released = {e["query_id"]: e["hlc"] for e in lines(run, "ConsumerReleased")}
+    crossed = [
+        e
+        for e in lines(run, "StatusDelivered")
+        if forgot.get(e["query_id"]) == e["pid"]
+        and sent.get(e["status_id"], released[e["query_id"]]) < released[e["query_id"]]
+    ]
+    assert crossed, "seed 27 no longer crosses a restart's release of a dependency with a status"
+
+
+@SWEEP
 def test_simrest_seed_5_holds_a_dependency_call_cut_by_its_callers_stop() -> None:
     # db killed at 0.476 s: rest_for_one stopped web, then api, while a load of web waited
     # on its call to api that api had added (c8c57a8a). web's stop withdraws top-level

@@ -26,7 +26,7 @@ from rr_actors._core.directory import DIRECTORY
 from rr_actors._core.replies import FutureReply, let_go
 from rr_actors._core.workers import Workers
 from rr_actors._registrar.calls import CallAttempt
-from rr_actors._registrar.messages import Ping
+from rr_actors._registrar.messages import Ping, Unload
 from rr_actors._registrar.status import Runner, _Call
 from rr_actors.testing import STEPS, RemoteRegistrar, call_futures, catalog_snapshot, intercept
 from tests.registrar.conftest import placement_network
@@ -1269,6 +1269,37 @@ class TestReleaseCrossing:
         assert ["warm-up", "unplugged"] == heard_when_released
         assert ["warm-up", "unplugged"] == crossing.heard  # (the late notice found it gone)
         assert ["warm-up", "unplugged"] == crossing.relay_heard
+        assert [] == crossing.consumer.client_queries()
+
+    def test_a_status_an_earlier_lifes_unload_answer_took_reaches_the_restart_s_release(
+        self, crossing: Crossing
+    ) -> None:
+        """The consumer's earlier life sent an `Unload` and was killed before its answer came;
+        its restart releases the id again. The provider released it on the first: the answer
+        to the restart's (`UnknownQueryError`) carries the statuses still on their way to it
+        (`simshare` seed 27: the first answer, carrying them, died with the life it went to)."""
+        held = threading.Event()
+
+        def hold(_batch: Any) -> None:  # (the relay's actor, until the release returned)
+            held.set()
+            assert crossing.go.wait(20)
+
+        with intercept(crossing.relay, "status_batch", before=hold), ThreadPoolExecutor(1) as pool:
+            sent = pool.submit(crossing.send, "unplugged", rr.Status.FATAL)
+            assert held.wait(10)  # on its way to the consumer, held back at its relay
+            lost = FutureReply()  # (the earlier life's: its answer goes nowhere now)
+            DIRECTORY.lookup(crossing.provider.name).tell(
+                Unload(crossing.query.id, crossing.consumer.name, lost)
+            )
+            assert ["unplugged"] == [s.message for s in lost.future.get(timeout=10)]
+
+            crossing.consumer.unload(crossing.query.id)  # (the restart's: unknown there now)
+            heard_when_released = list(crossing.heard)
+            crossing.go.set()
+            sent.result(20)
+
+        assert ["warm-up", "unplugged"] == heard_when_released
+        assert ["warm-up", "unplugged"] == crossing.heard
         assert [] == crossing.consumer.client_queries()
 
     def test_a_status_that_reached_the_consumer_first_is_not_delivered_again_at_its_release(
