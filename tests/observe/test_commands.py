@@ -133,8 +133,12 @@ def test_the_offline_page_follows_the_backups_as_they_change(
     with observe_backups(directory) as observer:
         query = app.call("cm", "filtered_camera", REQUEST)
 
-        state = wait_state(
-            observer.url, lambda s: len(s["sections"]["catalog/erm"]["catalog"]["resources"]) == 2
+        state = wait_state(  # (erm's backup and cm's are written apart: wait for both)
+            observer.url,
+            lambda s: (
+                len(s["sections"]["catalog/erm"]["catalog"]["resources"]) == 2
+                and len(s["sections"]["graph"]["edges"]) >= 3
+            ),
         )
 
     assert 3 == len(state["sections"]["graph"]["edges"])  # action (no backup: from cm) -> cm -> erm

@@ -411,7 +411,7 @@ def arrived() -> Callable[..., bool]:
     An id listed twice must be waiting twice (a retry with the same query id).
     """
 
-    def check(provider: Registrar, query_ids: list[str], timeout: float = 5.0) -> bool:
+    def check(provider: Registrar, query_ids: list[str], timeout: float = 30.0) -> bool:
         wanted = collections.Counter(query_ids)
         return wait_for(lambda: wanted <= waiting_query_ids(provider), timeout)
 
