@@ -290,10 +290,9 @@ class Facts:
 
     Attributes:
         with_backup: registrars that published a `CatalogRestored`.
-        forgot: (provider, query id) -> the stamp of its consumer's first `QueryForgotten`.
-        forgets: (provider, query id) -> the stamps of all of them, in order (an id called
-            again once forgotten is held anew).
-        released: (provider, query id) -> `(unload_sent, reconciled)` of that `QueryForgotten`
+        forgets: (provider, query id) -> the stamps of its consumer's `QueryForgotten`s, in
+            order (an id called again once forgotten is held anew).
+        released: (provider, query id) -> `(unload_sent, reconciled)` of the first `QueryForgotten`
             if forgotten on the answer to its release.
         fatal: query id -> the line of the first `FATAL` its holder was told.
         fatal_at: query id -> the stamps of every `FATAL` its holder was told, in order (an id
@@ -320,7 +319,6 @@ class Facts:
     """
 
     with_backup: set[str] = dataclasses.field(default_factory=set)
-    forgot: dict[tuple[str, str], int] = dataclasses.field(default_factory=dict)
     forgets: dict[tuple[str, str], list[int]] = dataclasses.field(default_factory=dict)
     released: dict[tuple[str, str], tuple[int, int]] = dataclasses.field(default_factory=dict)
     fatal: dict[str, int] = dataclasses.field(default_factory=dict)
@@ -389,11 +387,10 @@ def gather(history: Sequence[Line]) -> Facts:  # noqa: PLR0912, PLR0915 - a bran
             calls.append((event.hlc, event.retry and bool(calls) and calls[-1][1]))
         elif isinstance(event, events.QueryForgotten):
             held = (event.serving_rr, event.query_id)
-            facts.forgets.setdefault(held, []).append(event.hlc)
-            if held not in facts.forgot:
-                facts.forgot[held] = event.hlc
-                if event.unload_sent:
-                    facts.released[held] = (event.unload_sent, event.reconciled)
+            stamps = facts.forgets.setdefault(held, [])
+            stamps.append(event.hlc)
+            if len(stamps) == 1 and event.unload_sent:
+                facts.released[held] = (event.unload_sent, event.reconciled)
             if event.reason in REPORTED:
                 facts.reported.add((event.registrar, event.query_id))
                 facts.lost.add((event.serving_rr, event.query_id))

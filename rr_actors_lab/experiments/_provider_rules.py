@@ -159,7 +159,6 @@ class Providers:
     ) -> None:
         self.lost_backups = lost_backups or set()
         self.with_backup = facts.with_backup
-        self.forgot = facts.forgot
         self.forgets = facts.forgets
         self.release_stamps = facts.released
         self.lives = lives or {}
@@ -286,11 +285,11 @@ class Providers:
         program killed with its managers, `kill_program`: `simprogram` seed 215); its restart
         finished the unload, which `name` no longer knew."""
         at = self.releasing.get((consumer, qid))
-        if at is None or (name, qid) not in self.forgot:
+        if at is None or (name, qid) not in self.forgets:
             return False
         lives = self.lives_of(consumer)
         after = next((i for i, life in enumerate(lives) if life.start == at), 0)
-        return after > 0 and lives[after - 1].last < stamp <= self.forgot[name, qid]
+        return after > 0 and lives[after - 1].last < stamp <= self.forgets[name, qid][0]
 
     def let_go_before(self, name: str, qid: str, stamp: int) -> bool:
         """Whether `qid`'s consumer forgot it at `name` before `stamp` and held it no more
@@ -304,7 +303,7 @@ class Providers:
         """Whether `qid`'s consumer let it go of its own: forgot it, or its last call of it
         failed (it never held it: a lost backup's id nobody must be told of)."""
         calls = self.outcomes.get(qid)
-        return (name, qid) in self.forgot or (calls is not None and not max(calls)[1])
+        return (name, qid) in self.forgets or (calls is not None and not max(calls)[1])
 
     def lives_of(self, name: str) -> list[Life]:
         """`name`'s lives, in order."""
