@@ -694,7 +694,7 @@ def test_a_damaged_backup_refused_then_restored_empty_holds(how: str) -> None:
 
 @pytest.mark.parametrize("how", ["flip", "truncate", "foreign"])
 def test_a_damaged_backup_a_restart_served_from_is_found(how: str) -> None:
-    """Issue 68 item 8: mutants of the backup's checks (`schema.py:200`, `schema.py:260`)
+    """Issue 68 item 8: mutants of the backup's checks (`schema.py:202`, `schema.py:262`)
     that took a damaged file for a good one survived: no plan damaged a backup."""
     history = _damaged(refused=False, whole=True)
     found = _damage_found(history, {P: how})
@@ -720,7 +720,7 @@ def test_a_damaged_backup_with_no_start_after_is_unverifiable() -> None:
 
 def test_a_resource_restored_with_another_digest_than_it_was_loaded_with_is_found() -> None:
     """Issue 68 item 8: a backup of another digest scheme (another Python's) restored
-    without its digests recomputed, the mutants of `schema.py:324`, survived: no plan gave
+    without its digests recomputed, the mutants of `schema.py:326`, survived: no plan gave
     one. An equal request then no longer matches the restored resource."""
     history = _damaged(refused=False, whole=True)
     restored = history[7]
@@ -1500,7 +1500,7 @@ def _plant(monkeypatch: pytest.MonkeyPatch, where: str, old: str, new: str) -> N
             'if application_id != APPLICATION_ID or "rr_actors_schema" not in tables:',
             'if application_id != APPLICATION_ID and "rr_actors_schema" not in tables:',
             "damaged-backup",
-            id="the mutant schema.py:200 is caught by damaged-backup at simbackup seed 1",
+            id="the mutant schema.py:202 is caught by damaged-backup at simbackup seed 1",
         ),
         pytest.param(  # (no object the file has beyond the schema's is looked at: a backup
             "simbackup",  # given a view is used)
@@ -1508,7 +1508,7 @@ def _plant(monkeypatch: pytest.MonkeyPatch, where: str, old: str, new: str) -> N
             "for kind, name, _, sql in found - expected:",
             "for kind, name, _, sql in []:",
             "damaged-backup",
-            id="the mutant schema.py:260 is caught by damaged-backup at simbackup seed 1",
+            id="the mutant schema.py:262 is caught by damaged-backup at simbackup seed 1",
         ),
         pytest.param(  # (a backup of another digest scheme restored with its digests as
             "simbackup",  # they were: front's resources match no equal request again)
@@ -1516,7 +1516,7 @@ def _plant(monkeypatch: pytest.MonkeyPatch, where: str, old: str, new: str) -> N
             "if scheme == DIGEST_SCHEME:",
             "if scheme != DIGEST_SCHEME:",
             "kept",
-            id="the mutant schema.py:324 is caught by kept at simbackup seed 1",
+            id="the mutant schema.py:326 is caught by kept at simbackup seed 1",
         ),
         pytest.param(  # (every `acall_with_retry` times out at once, before it sends its call:
             "simcancel",  # its `CallWithdrawn`, 0 s after its start, of a 3 s timeout)
