@@ -280,12 +280,18 @@ def sample(every: list[Mutant], size: int, seed: int) -> list[Mutant]:
     for mutant in drawn:
         if len(chosen) == size:
             break
-        try:
-            compile(mutated(mutant)[0], mutant.file, "exec")
-        except (SyntaxError, AttributeError):
-            continue
-        chosen.append(mutant)
+        if not stillborn(mutant):
+            chosen.append(mutant)
     return chosen
+
+
+def stillborn(mutant: Mutant) -> bool:
+    """Whether the mutant does not compile, or cosmic-ray fails to make it (see `sample`)."""
+    try:
+        compile(mutated(mutant)[0], mutant.file, "exec")
+    except (SyntaxError, AttributeError):
+        return True
+    return False
 
 
 def scratch(folder: Path, mutant: Mutant | None) -> tuple[Path, str]:
@@ -555,6 +561,19 @@ def earlier_results(options: argparse.Namespace) -> list[dict[str, Any]]:
     return results
 
 
+def only(parser: argparse.ArgumentParser, ids: str, every: list[Mutant]) -> list[Mutant]:
+    """The mutants `--only` names (`parser.error` for one unknown, or stillborn: a
+    search would stop at it with cosmic-ray's traceback, the results before unprinted)."""
+    by_id = {m.id: m for m in every}
+    wanted = ids.split(",")
+    if unknown := [w for w in wanted if w not in by_id]:
+        parser.error(f"--only: no mutant {', '.join(unknown)} (see --list)")
+    chosen = [by_id[w] for w in wanted]
+    if unmade := [m.id for m in chosen if stillborn(m)]:
+        parser.error(f"--only: {', '.join(unmade)} cannot be made or does not compile")
+    return chosen
+
+
 def main(argv: list[str] | None = None) -> int:
     args = sys.argv[1:] if argv is None else argv
     if args[:1] == ["--child"]:
@@ -604,13 +623,8 @@ def main(argv: list[str] | None = None) -> int:
         for mutant in every:
             print(mutant.id)
         return 0
-    if options.only:
-        by_id = {m.id: m for m in every}
-        wanted = options.only.split(",")
-        if unknown := [w for w in wanted if w not in by_id]:
-            parser.error(f"--only: no mutant {', '.join(unknown)} (see --list)")
-        chosen = [by_id[w] for w in wanted]
-    else:
+    chosen = only(parser, options.only, every) if options.only else None
+    if chosen is None:
         chosen = sample(every, options.sample, options.seed)
     if options.resume and options.json is None:
         parser.error("--resume needs --json (the file the earlier chunks wrote)")

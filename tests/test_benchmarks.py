@@ -473,6 +473,25 @@ def test_a_mutant_cosmic_ray_fails_to_make_is_left_out_of_the_sample_as_a_stillb
     assert [every[1]] == score.sample(every, 2, 68)
 
 
+def test_a_mutant_cosmic_ray_fails_to_make_is_refused_by_only_before_any_search(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`--only _store/files.py:666:ExceptionReplacer` (`except (sqlite3.Error, OSError)`)
+    stopped a search of sixteen mutants with cosmic-ray's traceback at the thirteenth, its
+    twelve results unprinted."""
+    score = _script("mutation_score", monkeypatch)
+    [unmade] = [
+        m.id
+        for m in score.enumerate_mutants(("_store/files.py",))
+        if m.operator == "core/ExceptionReplacer" and score.stillborn(m)
+    ][:1]
+
+    with pytest.raises(SystemExit):
+        score.main(["--only", unmade])
+
+    assert f"--only: {unmade} cannot be made" in capsys.readouterr().err
+
+
 def test_every_mutant_shown_equivalent_is_still_a_mutant_of_the_source(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
