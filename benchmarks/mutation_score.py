@@ -140,6 +140,14 @@ EQUIVALENT: dict[str, str] = {
     "two objects) the UPDATE writes the response the row already holds: the same row",
     "_registrar/consumer.py:589:ReplaceComparisonOperator_Is_Eq": "`ResourceState` is a "
     "plain `enum.Enum`, whose `==` is identity: `== UNLOADING` is `is UNLOADING`",
+    "_supervision/policy.py:342:ReplaceComparisonOperator_NotEq_Lt": "a child whose "
+    "latest `Restart` (`_due`) is the one run in its generation is always 'restarting': "
+    "only that run starts it (`start_all` comes before any), `_take_down` sets it back "
+    "after its stop, and `stop_all`/`give_up` call `cancel` first; 'restarting' < "
+    "'restarting' is false as != is (where `_due` is another `Restart`, both `continue`)",
+    "_supervision/policy.py:342:ReplaceComparisonOperator_NotEq_Gt": "as policy.py:342 "
+    "NotEq_Lt: a child whose latest `Restart` runs is 'restarting', and 'restarting' > "
+    "'restarting' is false as != is ('exited', the only smaller state, never meets it)",
     "_supervision/children.py:412:NumberReplacer:1": "incarnations are only bumped by 1 and "
     "compared with `!=` to the one a watcher posted (no event or page shows one): starting "
     "at -1 shifts every one alike",

@@ -12,6 +12,7 @@ from typing import Any
 import pytest
 
 import rr_actors as rr
+from rr_actors._supervision import aio
 from tests.support.heard import events_of
 from tests.support.supervising import ManualTimer, crash, process, sigkill
 
@@ -98,6 +99,37 @@ def test_a_cancelled_astart_stops_what_it_started(uid: str) -> None:
     assert ["ChildStarted", "ChildExited"] == [
         kind for kind in seen if kind in ("ChildStarted", "ChildExited")
     ]
+
+
+def test_an_astart_cancelled_as_its_start_ends_stops_what_it_started(
+    uid: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # (forced: the cancel lands once the start ended, before the awaited start returns:
+    # the start's thread saw no cancel, so the cancelled await must stop the tree)
+    name = f"erm-{uid}"
+    sup = rr.Supervisor([process(name)])
+    exited = threading.Event()
+    run_steps_async = aio.run_steps_async
+
+    async def ended_then_cancelled(steps: Any) -> Any:
+        await run_steps_async(steps)
+        raise asyncio.CancelledError
+
+    def on_event(event: rr.events.Event) -> None:
+        if isinstance(event, rr.events.ChildExited):
+            exited.set()
+
+    monkeypatch.setattr(aio, "run_steps_async", ended_then_cancelled)
+    try:
+        with sup.subscribe(on_event):
+            with pytest.raises(asyncio.CancelledError):
+                asyncio.run(sup.astart())
+            assert exited.wait(20)  # stopped on a thread of its own
+    finally:  # (its stop's thread ends first: a failure leaves no tree running)
+        for thread in threading.enumerate():
+            if thread.name == f"rr-stop-{sup.name}":
+                thread.join(20)
+        sup.stop()
 
 
 def _counting_restart_waits(
