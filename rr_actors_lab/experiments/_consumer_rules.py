@@ -297,8 +297,10 @@ def reported_lost(
 
 
 def end(steps: Sequence[Step], history: Sequence[Line]) -> list[Finding]:
-    """`end`: at the end, no provider holds an id of a consumer that stopped (life by life: a new
-    life holds what its `CatalogRestored` lists, or nothing)."""
+    """`end`: at the end, no provider holds an id of a consumer that stopped, or that was lost
+    for good (rule 19: its last life ended in a `ChildExited` and no life of it began after)
+    before the provider's last stop or exit (life by life: a new life holds what its
+    `CatalogRestored` lists, or nothing)."""
     stopped: dict[str, int] = {}  # consumer -> line of its (last) RegistrarStopped
     last_pid: dict[str, int] = {}
     exited: dict[tuple[str, int], int] = {}  # (child, pid) -> line of its ChildExited
@@ -322,19 +324,25 @@ def end(steps: Sequence[Step], history: Sequence[Line]) -> list[Finding]:
             held[name][event.query_id] = (event.consumer, line)
         elif isinstance(event, events.ConsumerReleased):
             held[name].pop(event.query_id, None)
+    gone = {  # consumer -> the line it stopped at, or was lost for good at (its last exit)
+        **{name: exited[name, pid] for name, pid in last_pid.items() if (name, pid) in exited},
+        **stopped,
+    }
     findings = []
     for provider, ids in held.items():
         down = stopped.get(provider, exited.get((provider, last_pid.get(provider, -1))))
         for qid, (consumer, line) in ids.items():
-            # a provider down when its consumer stopped is told at its next start (rule 12)
-            up = consumer in stopped and (down is None or down > stopped[consumer])
+            # a provider down when its consumer stopped is told at its next start (rule 12),
+            # or when it was lost (rule 19: at that start, as each lost since)
+            up = consumer in gone and (down is None or down > gone[consumer])
             if up and consumer != provider:
+                how = "stopped" if consumer in stopped else "was lost for good"
                 findings.append(
                     Finding(
                         "end",
                         "violation",
-                        f"{provider} still holds query {qid[:8]} of {consumer}, which stopped",
-                        (line, stopped[consumer]),
+                        f"{provider} still holds query {qid[:8]} of {consumer}, which {how}",
+                        (line, gone[consumer]),
                         (provider, consumer),
                     )
                 )

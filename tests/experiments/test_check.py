@@ -2657,6 +2657,45 @@ def test_a_restart_with_a_restore_holds_what_the_restore_lists() -> None:
     assert "held" == check.check(numbered(_stamped([first, *h[:4], empty, *h[4:]]))).verdict
 
 
+def lost_consumer(then: str) -> list[events.Event]:
+    """erm serves manager cm's Q1; cm is killed and nobody restarts it (lost for good,
+    rule 19); `then`: what erm does before its stop ("release": lets Q1 go; "keep": lists
+    it at its stop; "restart": cm comes back, as a new life, before erm's stop)."""
+    h = [
+        events.ChildStarted("sup", "cm", C),
+        events.ResourceLoaded("erm", "cam", RID, Q1, 0.01, 42, "cam 0", pid=P, seq=1),
+        events.ConsumerAdded("erm", RID, Q1, "cm", pid=P, seq=2),
+        events.CallAnswered("cm", Q1, "erm", "cam", pid=C),
+        events.ChildExited("sup", "cm", C, "killed by SIGKILL"),
+    ]
+    row = ((RID, "cam", "loaded", "42", ""),), ((Q1, RID, "cm"),)
+    if then == "release":
+        h += [
+            events.ConsumerReleased("erm", RID, Q1, "cm", "lost", pid=P, seq=3),
+            events.ResourceUnloaded("erm", "cam", RID, pid=P, seq=4),
+            events.RegistrarStopped("erm", (), (), (), pid=P, seq=5),
+        ]
+    elif then == "restart":
+        h += [
+            events.CatalogRestored("cm", (), (), (), pid=C + 1),
+            events.RegistrarStopped("erm", *row, (), pid=P, seq=3),
+        ]
+    else:
+        h += [events.RegistrarStopped("erm", *row, (), pid=P, seq=3)]
+    return _stamped(h)
+
+
+def test_an_id_of_a_consumer_lost_for_good_kept_to_the_providers_stop_is_an_end() -> None:
+    # (mutant `_registrar/life.py:606:ReplaceComparisonOperator_Eq_GtE`: a registrar lost
+    # for good with a name after the provider's was never released there; crashloop seed 1)
+    assert {3, 5} == _found(lost_consumer("keep"), "end")
+
+
+@pytest.mark.parametrize("then", ["release", "restart"])
+def test_an_id_of_a_consumer_lost_for_good_released_or_back_is_no_end(then: str) -> None:
+    assert [] == _of_rule(lost_consumer(then), "end")
+
+
 # -- mutations of the shipped plans' real runs: each is caught, by its rule ----------------
 #
 # A mutation turns a clean history into one where a registrar broke a rule (the events
