@@ -607,32 +607,44 @@ class Answers:
     def on_call_failed(self, message: CallFailed, _reply: Reply) -> None:
         if message.serving_rr is not None:  # (it died or stopped: answers of lists sent
             self.registrar.reconciling.died(message.serving_rr)  # before may be its run's)
-        known = self.registrar.catalog.client(message.query_id)
-        publish_failed(
-            self.registrar,
-            message,
-            retry=self.registrar.flights.was_unsettled(message.query_id)
-            or (known is not None and known.loaded),
-        )
-        current = self.registrar.due.durable_attempt(message.query_id)
+        qid, flights = message.query_id, self.registrar.flights
+        known = self.registrar.catalog.client(qid)
+        unsettled = flights.was_unsettled(qid)  # (kept there for a retry, or may be)
+        kept = unsettled or qid in flights.kept_for_retry
+        retry = unsettled or (known is not None and known.loaded)
+        publish_failed(self.registrar, message, retry=retry)
+        current = self.registrar.due.durable_attempt(qid)
         if current is None or current is message.attempt:
             # (set if it may hold the id: a retry may follow; settled, or unsettled again)
-            self.registrar.flights.reset(message.query_id, retry_held_at(message), message.parent)
-        record = self.registrar.catalog.client(message.query_id)
+            flights.reset(qid, retry_held_at(message), message.parent)
+        record = self.registrar.catalog.client(qid)
         stale = current is not None and current is not message.attempt
-        retried = not stale and record is not None and record.loaded and not message.withdrawn
+        withdrawn = message.withdrawn and not self.registrar.stopping  # (a stop gives all back)
+        retried = not stale and record is not None and record.loaded
+        retried = retried and withdrawn == message.withdrawn
         try:
             if stale:
                 pass  # a stale failure of an earlier attempt: a retry's is due
+            elif retried and withdrawn:  # still held, unless its provider knew it not and the
+                flights.doubt((qid,), message.provider)  # retry's load was undone: reconciled
             elif retried:
                 pass  # a failed retry of an id this registrar holds: it still holds it
             elif record is not None:
-                self.registrar.holdings.forget(message.query_id, reason="withdrawn")
+                self.registrar.holdings.forget(qid, reason="withdrawn")
         finally:
-            self.registrar.flights.answered(message.query_id, message.attempt, message.provider)
-        record = self.registrar.catalog.client(message.query_id)  # (not due now: its FATAL
-        if retried and record is not None and record.loaded:  # is not parked)
+            flights.answered(qid, message.attempt, message.provider)
+        record = self.registrar.catalog.client(qid)  # (not due now: its FATAL is not parked)
+        if retried and record is not None and record.loaded:
             self.retry_failed(message, record)
+        elif withdrawn and kept and not retried:  # its Abandon gave back what the retry added
+            self.give_back_kept(message)
+
+    def give_back_kept(self, message: CallFailed) -> None:
+        """A withdrawn retry of an id its provider kept for it (an earlier try failed as it
+        died): give it back, unless a new call of it is due (none starts meanwhile)."""
+        with self.registrar.due.frozen() as (due, _withdrawn):
+            if message.query_id not in due:
+                give_back(message.provider, message.query_id, self.registrar.name)
 
     def retry_failed(self, message: CallFailed, record: ClientRecord) -> None:
         """A held id's retry failed: it is still held, unless its provider ran a new load for it

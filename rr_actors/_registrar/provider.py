@@ -299,6 +299,7 @@ class Provider:
         self.admission = Admission()  # each server's loads queued or running, by consumer
         self.loading_ids: dict[str, str] = {}  # a waiting caller's query id -> its resource
         self.abandoned: set[str] = set()  # query ids whose callers gave up while it loaded
+        self.retried_held: set[str] = set()  # ids held here before their last Load came
         self.held_loads: list[Load] = []  # for servers `setup` has not registered yet
         self.after_unload: dict[str, list[Load]] = {}  # resource id -> loads parked behind
         self.load_started: dict[str, float] = {}  # resource id -> when (`time.monotonic()`)
@@ -359,6 +360,7 @@ class Provider:
             return
         self.registrar.lives.heard(message.origin_rr, message.life)
         self.abandoned.discard(message.query_id)  # a retry: its caller is back
+        self.retried_held.discard(message.query_id)
         digest = request_digest(message.request)
         if digest is not None:  # a plain value: decided on this thread
             self.identify(message, None, digest)
@@ -435,6 +437,7 @@ class Provider:
         if not same:
             message.reply.set_error(self.reused(message, known.server))
         elif self.registrar.catalog.has_consumer(message.query_id):  # answered: the stored response
+            self.retried_held.add(message.query_id)  # (its withdrawal gives back nothing)
             reply = message.reply  # (after the turn's commit: its id may be staged in it)
             self.registrar.commit_then(
                 ok=lambda: reply.set_result(known.response),
@@ -1276,8 +1279,10 @@ class Unloading:
         self.release(query_id, CallbackReply(answered), "unload", message.trace)
 
     def on_abandon(self, message: Abandon, reply: Reply) -> None:
-        if not self.held_by_another(message.query_id, message.origin_rr):
-            self.release(message.query_id, None, "abandoned")
+        query_id = message.query_id  # (a withdrawn retry of an id held here before it: kept)
+        kept = message.withdrawn and query_id in self.registrar.provider.retried_held
+        if not kept and not self.held_by_another(query_id, message.origin_rr):
+            self.release(query_id, None, "abandoned")
         reply.set_result(None)  # (a consumer's stop waits for it; a tell's goes nowhere)
 
     def held_by_another(self, query_id: str, origin_rr: str) -> bool:
@@ -1332,6 +1337,7 @@ class Unloading:
             return
         origin = resource.consumers[query_id]
         catalog.release(query_id)
+        self.registrar.provider.retried_held.discard(query_id)
         shared = self.registrar
         told = (
             (events.ConsumerReleased(shared.name, resource.id, query_id, origin, reason, trace),)
@@ -1430,9 +1436,10 @@ class Unloading:
     def on_reconcile(self, message: Reconcile, reply: Reply) -> None:
         """Release the ids of `origin_rr` it no longer holds; name those held here unknown.
 
-        An id whose load is still under way here (waiting, parked, matched) is neither;
-        one `origin_rr` does not list is given up (its caller's run died before the
-        answer: presumed abort, or gave it back). The `Load`s of runs of `origin_rr`
+        An id whose load is still under way here (waiting, parked, matched) is neither, unless
+        its caller gave it up (a held id's withdrawn retry: unknown); one `origin_rr` does not
+        list is given up (its caller's run died before the answer: presumed abort, or gave it
+        back). The `Load`s of runs of `origin_rr`
         earlier than the one that sent it are refused from now on (`Lives`).
         """
         catalog = self.registrar.catalog
@@ -1446,18 +1453,18 @@ class Unloading:
         ):
             del self.asked[message.origin_rr]
         self.registrar.lives.reconciled(message.origin_rr, message.life)
-        for query_id in self.registrar.provider.under_way_of(message.origin_rr):
+        provider = self.registrar.provider
+        for query_id in provider.under_way_of(message.origin_rr):
             if query_id not in held:
-                self.registrar.provider.give_up(query_id)
+                provider.give_up(query_id)
         mine = catalog.consumer_ids_from(message.origin_rr)
         step = self.registrar.config.steps.reconcile  # (a copy passed in: `config.steps`)
         told: tuple[str, ...] | None = None
         if step is None:
             stale = sorted(mine - held)
         else:
-            gone, unknown_ids = step(
-                frozenset(mine), frozenset(held), self.registrar.provider.under_way()
-            )
+            under_way = provider.under_way() - provider.abandoned
+            gone, unknown_ids = step(frozenset(mine), frozenset(held), under_way)
             stale, told = sorted(set(gone) & mine), tuple(sorted(unknown_ids))
         if stale:
             logger.warning(
@@ -1471,7 +1478,7 @@ class Unloading:
             if catalog.has_consumer(query_id):  # (still: a release above may have cascaded)
                 self.release(query_id, None, "reconcile")
         if told is None:  # (else a classroom's copy's answer)
-            under_way = self.registrar.provider.under_way()
+            under_way = provider.under_way() - provider.abandoned
             told = tuple(q for q in message.held if q not in mine and q not in under_way)
         reply.set_result(Reconciled(told, self.registrar.life))  # (which run answered)
 
