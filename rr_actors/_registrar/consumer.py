@@ -611,17 +611,16 @@ class Answers:
         known = self.registrar.catalog.client(qid)
         unsettled = flights.was_unsettled(qid)  # (kept there for a retry, or may be)
         kept = unsettled or qid in flights.kept_for_retry
-        retry = unsettled or (known is not None and known.loaded)
-        publish_failed(self.registrar, message, retry=retry)
+        publish_failed(self.registrar, message, retry=unsettled or bool(known and known.loaded))
         current = self.registrar.due.durable_attempt(qid)
-        if current is None or current is message.attempt:
-            # (set if it may hold the id: a retry may follow; settled, or unsettled again)
-            flights.reset(qid, retry_held_at(message), message.parent)
+        if current is None or current is message.attempt:  # (set if it may hold the id, a
+            # retry may follow; settled, or unsettled again; none once its caller withdrew it)
+            gone = message.withdrawn or message.attempt.state is AttemptState.WITHDRAWN
+            flights.reset(qid, None if gone else message.serving_rr, message.parent)
         record = self.registrar.catalog.client(qid)
         stale = current is not None and current is not message.attempt
         withdrawn = message.withdrawn and not self.registrar.stopping  # (a stop gives all back)
-        retried = not stale and record is not None and record.loaded
-        retried = retried and withdrawn == message.withdrawn
+        retried = not (stale or record is None or withdrawn != message.withdrawn) and record.loaded
         try:
             if stale:
                 pass  # a stale failure of an earlier attempt: a retry's is due
@@ -636,15 +635,10 @@ class Answers:
         record = self.registrar.catalog.client(qid)  # (not due now: its FATAL is not parked)
         if retried and record is not None and record.loaded:
             self.retry_failed(message, record)
-        elif withdrawn and kept and not retried:  # its Abandon gave back what the retry added
-            self.give_back_kept(message)
-
-    def give_back_kept(self, message: CallFailed) -> None:
-        """A withdrawn retry of an id its provider kept for it (an earlier try failed as it
-        died): give it back, unless a new call of it is due (none starts meanwhile)."""
-        with self.registrar.due.frozen() as (due, _withdrawn):
-            if message.query_id not in due:
-                give_back(message.provider, message.query_id, self.registrar.name)
+        elif withdrawn and kept and not retried:  # (kept there for a retry: its Abandon gave
+            with self.registrar.due.frozen() as (due, _):  # back what the retry added) given
+                if qid not in due:  # back, unless called again (none starts meanwhile)
+                    give_back(message.provider, qid, self.registrar.name)
 
     def retry_failed(self, message: CallFailed, record: ClientRecord) -> None:
         """A held id's retry failed: it is still held, unless its provider ran a new load for it
@@ -658,14 +652,6 @@ class Answers:
             self.registrar.holdings.report_lost(
                 source, (query.id,), why, forgotten="unknown at reconcile"
             )
-
-
-def retry_held_at(failed: CallFailed) -> str | None:
-    """The provider that may hold `failed`'s id for a retry: one that died or stopped with
-    the call on its way, unless its caller withdrew it first (then the id was given back)."""
-    if failed.withdrawn or failed.attempt.state is AttemptState.WITHDRAWN:
-        return None
-    return failed.serving_rr
 
 
 # -- holdings --------------------------------------------------------------------------

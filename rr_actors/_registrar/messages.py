@@ -141,9 +141,8 @@ class Unload(WireMessage):
 
 @dataclasses.dataclass(frozen=True)
 class Abandon(WireMessage):
-    """Consumer -> provider: the caller gave up on `query_id`; release it when possible
-    (`withdrawn`: only what its last `Load` added, rule 17). Answer (to a stopping
-    consumer, `reply` set): `None` once released, or not held."""
+    """Consumer -> provider: the caller gave up on `query_id`; release it when possible (if
+    `withdrawn`, only what its last `Load` added). Answer (`reply` set): `None`, once done."""
 
     query_id: str
     origin_rr: str

@@ -299,7 +299,7 @@ class Provider:
         self.admission = Admission()  # each server's loads queued or running, by consumer
         self.loading_ids: dict[str, str] = {}  # a waiting caller's query id -> its resource
         self.abandoned: set[str] = set()  # query ids whose callers gave up while it loaded
-        self.retried_held: set[str] = set()  # ids held here before their last Load came
+        self.retried_held: set[str] = set()  # held before their last Load: its Abandon keeps
         self.held_loads: list[Load] = []  # for servers `setup` has not registered yet
         self.after_unload: dict[str, list[Load]] = {}  # resource id -> loads parked behind
         self.load_started: dict[str, float] = {}  # resource id -> when (`time.monotonic()`)
@@ -794,7 +794,7 @@ class Provider:
         ids = {*self.loading_ids, *(load.query_id for load in self.matching.waiting())}
         ids.update(load.query_id for load in self.held_loads)
         ids.update(load.query_id for loads in self.after_unload.values() for load in loads)
-        return ids
+        return ids - self.abandoned  # (given up: holds nothing, as a held id's withdrawn retry)
 
     def fail_waiting(self, error: RrError) -> None:
         for waiters in self.loads.values():
@@ -1279,10 +1279,9 @@ class Unloading:
         self.release(query_id, CallbackReply(answered), "unload", message.trace)
 
     def on_abandon(self, message: Abandon, reply: Reply) -> None:
-        query_id = message.query_id  # (a withdrawn retry of an id held here before it: kept)
-        kept = message.withdrawn and query_id in self.registrar.provider.retried_held
-        if not kept and not self.held_by_another(query_id, message.origin_rr):
-            self.release(query_id, None, "abandoned")
+        kept = message.withdrawn and message.query_id in self.registrar.provider.retried_held
+        if not kept and not self.held_by_another(message.query_id, message.origin_rr):
+            self.release(message.query_id, None, "abandoned")
         reply.set_result(None)  # (a consumer's stop waits for it; a tell's goes nowhere)
 
     def held_by_another(self, query_id: str, origin_rr: str) -> bool:
@@ -1436,10 +1435,9 @@ class Unloading:
     def on_reconcile(self, message: Reconcile, reply: Reply) -> None:
         """Release the ids of `origin_rr` it no longer holds; name those held here unknown.
 
-        An id whose load is still under way here (waiting, parked, matched) is neither, unless
-        its caller gave it up (a held id's withdrawn retry: unknown); one `origin_rr` does not
-        list is given up (its caller's run died before the answer: presumed abort, or gave it
-        back). The `Load`s of runs of `origin_rr`
+        An id whose load is still under way here (waiting, parked, matched; not given up) is
+        neither; one `origin_rr` does not list is given up (its caller's run died before the
+        answer: presumed abort, or gave it back). The `Load`s of runs of `origin_rr`
         earlier than the one that sent it are refused from now on (`Lives`).
         """
         catalog = self.registrar.catalog
@@ -1453,18 +1451,18 @@ class Unloading:
         ):
             del self.asked[message.origin_rr]
         self.registrar.lives.reconciled(message.origin_rr, message.life)
-        provider = self.registrar.provider
-        for query_id in provider.under_way_of(message.origin_rr):
+        for query_id in self.registrar.provider.under_way_of(message.origin_rr):
             if query_id not in held:
-                provider.give_up(query_id)
+                self.registrar.provider.give_up(query_id)
         mine = catalog.consumer_ids_from(message.origin_rr)
         step = self.registrar.config.steps.reconcile  # (a copy passed in: `config.steps`)
         told: tuple[str, ...] | None = None
         if step is None:
             stale = sorted(mine - held)
         else:
-            under_way = provider.under_way() - provider.abandoned
-            gone, unknown_ids = step(frozenset(mine), frozenset(held), under_way)
+            gone, unknown_ids = step(
+                frozenset(mine), frozenset(held), self.registrar.provider.under_way()
+            )
             stale, told = sorted(set(gone) & mine), tuple(sorted(unknown_ids))
         if stale:
             logger.warning(
@@ -1478,7 +1476,7 @@ class Unloading:
             if catalog.has_consumer(query_id):  # (still: a release above may have cascaded)
                 self.release(query_id, None, "reconcile")
         if told is None:  # (else a classroom's copy's answer)
-            under_way = provider.under_way() - provider.abandoned
+            under_way = self.registrar.provider.under_way()
             told = tuple(q for q in message.held if q not in mine and q not in under_way)
         reply.set_result(Reconciled(told, self.registrar.life))  # (which run answered)
 
