@@ -381,11 +381,11 @@ def publish_answered(
 def publish_failed(shared: Shared, message: CallFailed, *, retry: bool) -> None:
     """Publish `CallWithdrawn` or `CallFailed` for a call's failure `message` (nothing
     for the answer to an `Abandon` after a withdrawn call)."""
-    if not shared.events.active:
-        return
-    if not message.withdrawn and message.attempt.state is AttemptState.WITHDRAWN:
+    stray = not message.withdrawn and message.attempt.state is AttemptState.WITHDRAWN
+    if stray or not shared.events.active:  # (stray: the answer to an `Abandon`)
         return
     attempt = message.attempt
+    stamps = (attempt.started, attempt.trace, attempt.caller_span)
     if message.withdrawn:
         shared.events.publish(
             events.CallWithdrawn(
@@ -394,9 +394,7 @@ def publish_failed(shared: Shared, message: CallFailed, *, retry: bool) -> None:
                 message.provider,
                 message.server,
                 message.why,
-                attempt.started,
-                attempt.trace,
-                attempt.caller_span,
+                *stamps,
             )
         )
         return
@@ -411,9 +409,7 @@ def publish_failed(shared: Shared, message: CallFailed, *, retry: bool) -> None:
             str(error) if error is not None else "",
             message.serving_rr is not None,
             retry,
-            attempt.started,
-            attempt.trace,
-            attempt.caller_span,
+            *stamps,
             message.parent,
         )
     )
@@ -613,10 +609,9 @@ class Answers:
         kept = unsettled or qid in flights.kept_for_retry
         publish_failed(self.registrar, message, retry=unsettled or bool(known and known.loaded))
         current = self.registrar.due.durable_attempt(qid)
-        if current is None or current is message.attempt:  # (set if it may hold the id, a
-            # retry may follow; settled, or unsettled again; none once its caller withdrew it)
+        if current is None or current is message.attempt:  # (unsettled again if its provider may
             gone = message.withdrawn or message.attempt.state is AttemptState.WITHDRAWN
-            flights.reset(qid, None if gone else message.serving_rr, message.parent)
+            flights.reset(qid, None if gone else message.serving_rr, message.parent)  # hold it)
         record = self.registrar.catalog.client(qid)
         stale = current is not None and current is not message.attempt
         withdrawn = message.withdrawn and not self.registrar.stopping  # (a stop gives all back)
