@@ -178,9 +178,8 @@ PLANTS = (
         "caller withdrew is held for a retry, so the next Reconcile lists it and the "
         "restarted provider keeps it (the reverse of 01defa0, issue 51 finding 1)",
         "_registrar/consumer.py",
-        "    if failed.withdrawn or failed.attempt.state is AttemptState.WITHDRAWN:\n"
-        "        return None\n",
-        "    # PLANTED: a withdrawn call's failure held for a retry too\n",
+        "            gone = message.withdrawn or message.attempt.state is AttemptState.WITHDRAWN\n",
+        "            gone = False  # PLANTED: a withdrawn call's failure held for a retry too\n",
         "simcancel",
         "withdrawn",
     ),
@@ -481,12 +480,10 @@ PLANTS = (
         "its failure ends the flight without its provider, which drops the doubt (issue 51); "
         "nor is its failure, a new load there, taken for the loss (issue 68)",
         "_registrar/consumer.py",
-        "            self.registrar.flights.answered(message.query_id, message.attempt,"
-        " message.provider)\n"
-        "        record = self.registrar.catalog.client(message.query_id)",
-        "            self.registrar.flights.answered(message.query_id, message.attempt) "
-        " # PLANTED\n"
-        "        record = None  # PLANTED: self.registrar.catalog.client(message.query_id)",
+        "            flights.answered(qid, message.attempt, message.provider)\n"
+        "        record = self.registrar.catalog.client(qid)",
+        "            flights.answered(qid, message.attempt)  # PLANTED\n"
+        "        record = None  # PLANTED: self.registrar.catalog.client(qid)",
         "simnostate",
         "kept",
     ),

@@ -510,7 +510,7 @@ class Calls:
         probes = self.probes()
         if probes is not None:
             probes.fire("withdraw", reply.query())
-        give_back(reply.serving_rr, reply.query_id, self.name)  # (then the record: a crash
+        give_back(reply.serving_rr, reply.query_id, self.name, True)  # (then the record: a crash
         self.withdrawn(reply.query_id, attempt, reply.serving_rr, reply.server, why)  # keeps it)
 
     def withdrawn(self, qid: str, attempt: CallAttempt, to: str, server: str, why: str) -> None:

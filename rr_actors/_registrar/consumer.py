@@ -381,11 +381,11 @@ def publish_answered(
 def publish_failed(shared: Shared, message: CallFailed, *, retry: bool) -> None:
     """Publish `CallWithdrawn` or `CallFailed` for a call's failure `message` (nothing
     for the answer to an `Abandon` after a withdrawn call)."""
-    if not shared.events.active:
-        return
-    if not message.withdrawn and message.attempt.state is AttemptState.WITHDRAWN:
+    stray = not message.withdrawn and message.attempt.state is AttemptState.WITHDRAWN
+    if stray or not shared.events.active:  # (stray: the answer to an `Abandon`)
         return
     attempt = message.attempt
+    stamps = (attempt.started, attempt.trace, attempt.caller_span)
     if message.withdrawn:
         shared.events.publish(
             events.CallWithdrawn(
@@ -394,9 +394,7 @@ def publish_failed(shared: Shared, message: CallFailed, *, retry: bool) -> None:
                 message.provider,
                 message.server,
                 message.why,
-                attempt.started,
-                attempt.trace,
-                attempt.caller_span,
+                *stamps,
             )
         )
         return
@@ -411,9 +409,7 @@ def publish_failed(shared: Shared, message: CallFailed, *, retry: bool) -> None:
             str(error) if error is not None else "",
             message.serving_rr is not None,
             retry,
-            attempt.started,
-            attempt.trace,
-            attempt.caller_span,
+            *stamps,
             message.parent,
         )
     )
@@ -607,32 +603,37 @@ class Answers:
     def on_call_failed(self, message: CallFailed, _reply: Reply) -> None:
         if message.serving_rr is not None:  # (it died or stopped: answers of lists sent
             self.registrar.reconciling.died(message.serving_rr)  # before may be its run's)
-        known = self.registrar.catalog.client(message.query_id)
-        publish_failed(
-            self.registrar,
-            message,
-            retry=self.registrar.flights.was_unsettled(message.query_id)
-            or (known is not None and known.loaded),
-        )
-        current = self.registrar.due.durable_attempt(message.query_id)
-        if current is None or current is message.attempt:
-            # (set if it may hold the id: a retry may follow; settled, or unsettled again)
-            self.registrar.flights.reset(message.query_id, retry_held_at(message), message.parent)
-        record = self.registrar.catalog.client(message.query_id)
+        qid, flights = message.query_id, self.registrar.flights
+        known = self.registrar.catalog.client(qid)
+        unsettled = flights.was_unsettled(qid)  # (kept there for a retry, or may be)
+        kept = unsettled or qid in flights.kept_for_retry
+        publish_failed(self.registrar, message, retry=unsettled or bool(known and known.loaded))
+        current = self.registrar.due.durable_attempt(qid)
+        if current is None or current is message.attempt:  # (unsettled again if its provider may
+            gone = message.withdrawn or message.attempt.state is AttemptState.WITHDRAWN
+            flights.reset(qid, None if gone else message.serving_rr, message.parent)  # hold it)
+        record = self.registrar.catalog.client(qid)
         stale = current is not None and current is not message.attempt
-        retried = not stale and record is not None and record.loaded and not message.withdrawn
+        withdrawn = message.withdrawn and not self.registrar.stopping  # (a stop gives all back)
+        retried = not (stale or record is None or withdrawn != message.withdrawn) and record.loaded
         try:
             if stale:
                 pass  # a stale failure of an earlier attempt: a retry's is due
+            elif retried and withdrawn:  # still held, unless its provider knew it not and the
+                flights.doubt((qid,), message.provider)  # retry's load was undone: reconciled
             elif retried:
                 pass  # a failed retry of an id this registrar holds: it still holds it
             elif record is not None:
-                self.registrar.holdings.forget(message.query_id, reason="withdrawn")
+                self.registrar.holdings.forget(qid, reason="withdrawn")
         finally:
-            self.registrar.flights.answered(message.query_id, message.attempt, message.provider)
-        record = self.registrar.catalog.client(message.query_id)  # (not due now: its FATAL
-        if retried and record is not None and record.loaded:  # is not parked)
+            flights.answered(qid, message.attempt, message.provider)
+        record = self.registrar.catalog.client(qid)  # (not due now: its FATAL is not parked)
+        if retried and record is not None and record.loaded:
             self.retry_failed(message, record)
+        elif withdrawn and kept and not retried:  # (kept there for a retry: its Abandon gave
+            with self.registrar.due.frozen() as (due, _):  # back what the retry added) given
+                if qid not in due:  # back, unless called again (none starts meanwhile)
+                    give_back(message.provider, qid, self.registrar.name)
 
     def retry_failed(self, message: CallFailed, record: ClientRecord) -> None:
         """A held id's retry failed: it is still held, unless its provider ran a new load for it
@@ -646,14 +647,6 @@ class Answers:
             self.registrar.holdings.report_lost(
                 source, (query.id,), why, forgotten="unknown at reconcile"
             )
-
-
-def retry_held_at(failed: CallFailed) -> str | None:
-    """The provider that may hold `failed`'s id for a retry: one that died or stopped with
-    the call on its way, unless its caller withdrew it first (then the id was given back)."""
-    if failed.withdrawn or failed.attempt.state is AttemptState.WITHDRAWN:
-        return None
-    return failed.serving_rr
 
 
 # -- holdings --------------------------------------------------------------------------

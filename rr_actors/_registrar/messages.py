@@ -141,12 +141,13 @@ class Unload(WireMessage):
 
 @dataclasses.dataclass(frozen=True)
 class Abandon(WireMessage):
-    """Consumer -> provider: the caller gave up on `query_id`; release it when possible.
-    Answer (to a stopping consumer, `reply` set): `None` once released, or not held."""
+    """Consumer -> provider: the caller gave up on `query_id`; release it when possible (if
+    `withdrawn`, only what its last `Load` added). Answer (`reply` set): `None`, once done."""
 
     query_id: str
     origin_rr: str
     reply: Reply | None = None
+    withdrawn: bool = False
 
 
 @dataclasses.dataclass(frozen=True)
@@ -319,11 +320,11 @@ class ConsumerDown(WireMessage):
     stopped: bool = False
 
 
-def give_back(serving_rr: str, query_id: str, origin_rr: str) -> None:
+def give_back(serving_rr: str, query_id: str, origin_rr: str, withdrawn: bool = False) -> None:
     """Tell provider `serving_rr` to release consumer id `query_id` whenever it can: the one
     way an id its caller will not hold is given back. Best effort."""
     with contextlib.suppress(RrError):
-        DIRECTORY.lookup(serving_rr).tell(Abandon(query_id, origin_rr))
+        DIRECTORY.lookup(serving_rr).tell(Abandon(query_id, origin_rr, withdrawn=withdrawn))
 
 
 # -- internal messages (never leave the process) ---------------------------------------

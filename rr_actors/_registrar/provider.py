@@ -299,6 +299,7 @@ class Provider:
         self.admission = Admission()  # each server's loads queued or running, by consumer
         self.loading_ids: dict[str, str] = {}  # a waiting caller's query id -> its resource
         self.abandoned: set[str] = set()  # query ids whose callers gave up while it loaded
+        self.retried_held: set[str] = set()  # held before their last Load: its Abandon keeps
         self.held_loads: list[Load] = []  # for servers `setup` has not registered yet
         self.after_unload: dict[str, list[Load]] = {}  # resource id -> loads parked behind
         self.load_started: dict[str, float] = {}  # resource id -> when (`time.monotonic()`)
@@ -359,6 +360,7 @@ class Provider:
             return
         self.registrar.lives.heard(message.origin_rr, message.life)
         self.abandoned.discard(message.query_id)  # a retry: its caller is back
+        self.retried_held.discard(message.query_id)
         digest = request_digest(message.request)
         if digest is not None:  # a plain value: decided on this thread
             self.identify(message, None, digest)
@@ -435,6 +437,7 @@ class Provider:
         if not same:
             message.reply.set_error(self.reused(message, known.server))
         elif self.registrar.catalog.has_consumer(message.query_id):  # answered: the stored response
+            self.retried_held.add(message.query_id)  # (its withdrawal gives back nothing)
             reply = message.reply  # (after the turn's commit: its id may be staged in it)
             self.registrar.commit_then(
                 ok=lambda: reply.set_result(known.response),
@@ -791,7 +794,7 @@ class Provider:
         ids = {*self.loading_ids, *(load.query_id for load in self.matching.waiting())}
         ids.update(load.query_id for load in self.held_loads)
         ids.update(load.query_id for loads in self.after_unload.values() for load in loads)
-        return ids
+        return ids - self.abandoned  # (given up: holds nothing, as a held id's withdrawn retry)
 
     def fail_waiting(self, error: RrError) -> None:
         for waiters in self.loads.values():
@@ -1276,7 +1279,8 @@ class Unloading:
         self.release(query_id, CallbackReply(answered), "unload", message.trace)
 
     def on_abandon(self, message: Abandon, reply: Reply) -> None:
-        if not self.held_by_another(message.query_id, message.origin_rr):
+        kept = message.withdrawn and message.query_id in self.registrar.provider.retried_held
+        if not kept and not self.held_by_another(message.query_id, message.origin_rr):
             self.release(message.query_id, None, "abandoned")
         reply.set_result(None)  # (a consumer's stop waits for it; a tell's goes nowhere)
 
@@ -1332,6 +1336,7 @@ class Unloading:
             return
         origin = resource.consumers[query_id]
         catalog.release(query_id)
+        self.registrar.provider.retried_held.discard(query_id)
         shared = self.registrar
         told = (
             (events.ConsumerReleased(shared.name, resource.id, query_id, origin, reason, trace),)
@@ -1430,8 +1435,8 @@ class Unloading:
     def on_reconcile(self, message: Reconcile, reply: Reply) -> None:
         """Release the ids of `origin_rr` it no longer holds; name those held here unknown.
 
-        An id whose load is still under way here (waiting, parked, matched) is neither;
-        one `origin_rr` does not list is given up (its caller's run died before the
+        An id whose load is still under way here (waiting, parked, matched; not given up) is
+        neither; one `origin_rr` does not list is given up (its caller's run died before the
         answer: presumed abort, or gave it back). The `Load`s of runs of `origin_rr`
         earlier than the one that sent it are refused from now on (`Lives`).
         """

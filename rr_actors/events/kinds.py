@@ -466,7 +466,7 @@ class CallFailed(_Numbered):
 
 @_kind
 class CallWithdrawn(_Numbered):
-    """A consumer's call was given up before its answer, the id given back (rule 17).
+    """A consumer's call was given up before its answer: what it added given back (rule 17).
 
     Attributes:
         reason: `"timeout"`, `"interrupted"` or `"registrar stopped"`.

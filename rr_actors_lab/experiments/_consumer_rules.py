@@ -359,19 +359,65 @@ withdrawal or from when that life of the provider began to hold it, whichever is
 
 
 def withdrawn(steps: Sequence[Step]) -> list[Finding]:
-    """`withdrawn` (rules 17, 20): a call its consumer withdrew leaves nothing held.
+    """`withdrawn` (rules 17, 20): a call its consumer withdrew leaves nothing held, and
+    gives back nothing held before it.
 
     A `CallWithdrawn` not answered later (a retry) is released by its `Abandon` or at the
     restarted provider's reconcile; a provider's life holding it `WITHDRAWN_BOUND_S` after
-    the withdrawal (wall clock `at`) is a violation.
+    the withdrawal (wall clock `at`) is a violation. A withdrawn retry of an id its consumer
+    holds (answered or restored, not forgotten since; not at its stop) leaves it held: its
+    provider's next release of it `"abandoned"`, or its consumer's next forget of it
+    `"withdrawn"`, is a violation; one the retry added there again (the provider had lost
+    it) is judged as a withdrawal, its consumer told `FATAL` (rule 20: `reported-lost`).
     """
     called: dict[tuple[str, str], tuple[int, float, str]] = {}  # (consumer, id) -> ...
-    for name, line, event, _new, _life in steps:
-        if isinstance(event, events.CallWithdrawn):
-            called[name, event.query_id] = (line, event.at, event.serving_rr)
+    held: set[tuple[str, str]] = set()  # (consumer, id) answered, not forgotten since
+    added: set[tuple[str, str]] = set()  # of those, added at the provider again since
+    retried: dict[tuple[str, str], int] = {}  # (consumer, id) -> its withdrawn retry's line
+    findings = []
+    for name, line, event, new, _life in steps:
+        if new:
+            held -= {key for key in held if key[0] == name}
+        key = (name, getattr(event, "query_id", ""))
+        if isinstance(event, events.CatalogRestored):
+            held.update((name, row[0]) for row in event.clients)
+        elif isinstance(event, events.CallWithdrawn):
+            if key in held - added and event.reason != "registrar stopped":
+                retried[key] = line  # (a retry of an id it holds: kept)
+            else:
+                called[key] = (line, event.at, event.serving_rr)
         elif isinstance(event, events.CallAnswered):
-            called.pop((name, event.query_id), None)  # (answered again: held, a retry)
-    return _held_on(called, _held_spans(steps))
+            called.pop(key, None)  # (answered again: held, a retry)
+            held.add(key)
+            added.discard(key)
+            retried.pop(key, None)
+        elif isinstance(event, events.QueryForgotten):
+            held.discard(key)
+            added.discard(key)
+            if (retry := retried.pop(key, None)) is not None and event.reason == "withdrawn":
+                findings.append(_gave_back(key, retry, line, name))
+        elif isinstance(event, events.ConsumerAdded | events.ConsumerReleased):
+            key = (event.consumer, event.query_id)
+            if isinstance(event, events.ConsumerAdded) and key in held:
+                added.add(key)  # (its provider had lost it: a retry's new load, or a dedup hit)
+            retry = retried.pop(key, None)
+            if retry is not None and getattr(event, "reason", "") == "abandoned":
+                findings.append(_gave_back(key, retry, line, name))
+    return [*_held_on(called, _held_spans(steps)), *findings]
+
+
+def _gave_back(key: tuple[str, str], retry: int, line: int, name: str) -> Finding:
+    consumer, qid = key
+    who = f"{consumer} forgot" if name == consumer else f"{name} released"
+    of = "" if name == consumer else f" of {consumer}"
+    return Finding(
+        "withdrawn",
+        "violation",
+        f"{who} query {qid[:8]}{of} after a withdrawn retry of it: a hold it had before "
+        "that retry, given back (rule 17: a withdrawal leaves things as they were)",
+        (retry, line),
+        (name, consumer) if name != consumer else (consumer,),
+    )
 
 
 def retry_ended(steps: Sequence[Step]) -> list[Finding]:

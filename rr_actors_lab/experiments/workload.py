@@ -470,7 +470,7 @@ class Client:
     def _call_again(self, held: _Held) -> None:
         """Call `held`'s call again with its id, if it is still held, as a user unsure of it
         would; its hold starts over. Answered, the answer is the one held (the same resource,
-        or one a restart loaded anew); failed, the client keeps what it held (a failed retry
+        or one a restart loaded anew); failed or timed out, the client keeps what it held (it
         releases nothing; its consumer tells `FATAL` if the provider lost it meanwhile)."""
         if self._by_id.get(held.query.id) is not held:
             return  # (unloaded, or reloaded after a FATAL, meanwhile)

@@ -2392,6 +2392,62 @@ def test_a_withdrawn_id_answered_again_by_a_retry_is_no_withdrawn_violation() ->
     assert [] == _of_rule([*history[:5], retry, *history[5:]], "withdrawn")
 
 
+def held_then_retry_withdrawn(given_back: bool) -> list[events.Event]:
+    """The last review: cm holds Q1 at erm; its caller calls again with Q1 (the workload's
+    `_call_again`) and that retry is withdrawn at its timeout. `given_back` (the runtime
+    before): erm releases Q1 `"abandoned"` and cm forgets it `"withdrawn"`; else Q1 stays
+    held until cm's unload (lines 4 the withdrawal, 5 the release)."""
+    kept = [
+        events.QueryForgotten("cm", Q1, "erm", "unload", pid=C, at=12.0),
+        events.ConsumerReleased("erm", RID, Q1, "cm", "unload", pid=P, seq=4, at=12.001),
+    ]
+    gave_back = [
+        events.ConsumerReleased("erm", RID, Q1, "cm", "abandoned", pid=P, seq=4, at=11.01),
+        events.QueryForgotten("cm", Q1, "erm", "withdrawn", pid=C, at=11.011),
+    ]
+    return [
+        events.CatalogRestored("erm", (), (), (), pid=P, seq=1, at=10.0),
+        events.ResourceLoaded("erm", "cam", RID, Q1, 0.01, 42, "cam 0", pid=P, seq=2, at=10.0),
+        events.ConsumerAdded("erm", RID, Q1, "cm", pid=P, seq=3, at=10.0),
+        events.CallWithdrawn("cm", Q1, "erm", "cam", "timeout", pid=C, at=11.0),
+        *(gave_back if given_back else kept),
+        events.ResourceUnloaded("erm", "cam", RID, pid=P, seq=5, at=12.002),
+        events.RegistrarStopped("cm", (), (), (), pid=C, at=13.0),
+        events.RegistrarStopped("erm", (), (), (), pid=P, seq=6, at=13.0),
+    ]
+
+
+def _answered_first(history: list[events.Event]) -> list[events.Event]:
+    """`history` with cm's answer to Q1 after erm added it (line 4; the rest one later)."""
+    answered = events.CallAnswered("cm", Q1, "erm", "cam", pid=C, at=10.001)
+    return [*history[:3], answered, *history[3:]]
+
+
+@pytest.mark.parametrize("first", ["released", "forgot"])
+def test_a_withdrawn_retry_that_gave_a_held_id_back_is_a_withdrawn_violation(first: str) -> None:
+    history = _answered_first(held_then_retry_withdrawn(given_back=True))
+    if first == "forgot":  # (as the simulation showed it: its provider hung, the Abandon late)
+        history[5], history[6] = history[6], history[5]
+    found = _of_rule(history, "withdrawn")
+
+    assert [(5, 6)] == [f.lines for f in found]
+    who = {"released": "erm released query q1111111 of cm", "forgot": "cm forgot query q1111111"}
+    assert f"{who[first]} after a withdrawn retry of it" in found[0].message
+
+
+def test_a_withdrawn_retry_of_a_held_id_that_keeps_it_holds() -> None:
+    _holds(_answered_first(held_then_retry_withdrawn(given_back=False)))
+
+
+def test_a_withdrawn_retry_whose_new_load_was_undone_is_no_withdrawn_violation() -> None:
+    # rule 20: erm had lost Q1; the retry added it again (a dedup hit, published before the
+    # withdrawal), so its release "abandoned" undoes what the retry added
+    history = _answered_first(held_then_retry_withdrawn(given_back=True))
+    again = events.ConsumerAdded("erm", RID, Q1, "cm", pid=P, seq=3, at=10.5)
+
+    assert [] == _of_rule([*history[:4], again, *history[4:]], "withdrawn")
+
+
 def dependency_failed_then_restored(released_after: float) -> list[events.Event]:
     """Rule 17, issue 68 item 8: cm's load of RID2 called erm (Q1), which committed Q1 and
     died before its answer left: cm's call failed (`may_have_executed`, parent RID2), so

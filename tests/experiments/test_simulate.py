@@ -1680,3 +1680,32 @@ def test_a_workload_with_only_makes_the_calls_it_names_each_with_the_request_it_
         run.history
     )
     assert "client-0" not in run.history  # (a client given no call is not started)
+
+
+@SWEEP
+def test_a_withdrawn_retry_of_a_held_id_leaves_it_held_on_the_simulation() -> None:
+    """The last review: `hang`, its clients calling half their answered calls again with the
+    same id while they hold them (`again`), with a 0.5 s timeout: a retry sent to the hung
+    planner is withdrawn at its timeout. Seed 1 reaches one, and the id stays held (before
+    the fix client-0 forgot it, "withdrawn", and planner released it: `withdrawn`)."""
+    text = (PLANS / "hang.toml").read_text()
+    text = text.replace("keys = 4\n", "keys = 4\nagain = 0.5\n").replace(
+        "timeout = 3.0", "timeout = 0.5"
+    )
+    run = simulate.run_seed(parse_plan(text), 1)
+
+    held: set[tuple[str, str]] = set()
+    withdrawn_retries = []
+    for line in run.history.splitlines():
+        if not line.startswith('{"'):
+            continue
+        event = json.loads(line)
+        key = (event.get("registrar"), event.get("query_id"))
+        if event["type"] == "CallAnswered":
+            held.add(key)
+        elif event["type"] == "QueryForgotten":
+            held.discard(key)
+        elif event["type"] == "CallWithdrawn" and key in held:
+            withdrawn_retries.append(key)
+    assert withdrawn_retries  # (the seed reaches the finding)
+    assert ("held", 0) == (run.verdict, run.violations), run.findings

@@ -2208,3 +2208,80 @@ def test_a_call_whose_client_gets_no_thread_fails_naming_the_bound_and_its_regis
 
     monkeypatch.setattr(consumer_module.ClientActor, "start", start)
     assert "x" == consumer.call(provider.name, "leaf", "x", timeout=10).request
+
+
+class TestWithdrawnRetry:
+    """A retry of an id the consumer holds, withdrawn by its caller (rule 17): it leaves
+    things as they were before it, the earlier hold still held at both ends."""
+
+    def test_a_withdrawn_retry_of_a_held_id_keeps_it_held(
+        self, named_registrars: Starter, eventually: Callable[..., bool]
+    ) -> None:
+        # the last review: a caller's retry of a held id (the lab's `_call_again`) timed out
+        # while its provider's answer was held back; its Abandon released the id there, and
+        # the consumer forgot it ("withdrawn"): a hold it had before the retry, given back
+        provider, consumer = named_registrars("prov"), named_registrars("cons")
+        unloads: list[Any] = []
+        provider.register_server("leaf", load=lambda r: r, unload=lambda r, _s: unloads.append(r))
+        qid = consumer.call(provider.name, "leaf", "held", timeout=10).id
+        go, abandoned = threading.Event(), threading.Event()
+
+        def hold(load: Any) -> None:  # the provider's answer to the retry is held back
+            if load.query_id == qid:
+                assert go.wait(10)
+
+        with (
+            intercept(provider, "load", before=hold),
+            intercept(provider, "abandon", after=lambda _m: abandoned.set()),
+        ):
+            with pytest.raises(rr.CallTimeoutError):
+                consumer.call(provider.name, "leaf", "held", query_id=qid, timeout=0.2)
+            go.set()  # the retry's Load, then its Abandon, reach the provider
+            assert abandoned.wait(10)
+        assert [qid] == [q.id for q in provider.server_queries("leaf")]
+        assert eventually(lambda: [qid] == [q.id for q in consumer.client_queries()], timeout=5)
+        assert [qid] == [q.id for q in consumer.client_queries()]  # (and stays so)
+        consumer.unload(qid, timeout=10)
+        assert eventually(lambda: ["held"] == unloads, timeout=5)
+        assert [] == provider.server_queries("leaf")
+        assert [] == consumer.client_queries()
+        assert ["held"] == unloads  # unloaded once
+
+    def test_a_withdrawn_retry_whose_new_load_is_undone_tells_fatal_to_the_held_id(
+        self, named_registrars: Starter, eventually: Callable[..., bool]
+    ) -> None:
+        # rule 20: the provider no longer knew the held id (lost, here released behind the
+        # consumer's back, as a restart that lost its commit would), so the retry ran a new
+        # load there; its caller withdrew it: that load is undone, and the id, held by the
+        # consumer alone, is told `FATAL` and forgotten (as a failed retry's, `retry_failed`)
+        provider, consumer = named_registrars("prov"), named_registrars("cons")
+        loads: list[Any] = []
+        unloads: list[Any] = []
+        gate = threading.Event()
+
+        def load(request: Any) -> Any:
+            loads.append(request)
+            if len(loads) > 1:  # the retry's new load runs until the test lets it end
+                assert gate.wait(10)
+            return request
+
+        provider.register_server("leaf", load=load, unload=lambda r, _s: unloads.append(r))
+        heard: list[tuple[str, rr.Status]] = []
+        note = lambda q, u: heard.append((q.id, u.status))  # noqa: E731
+        qid = consumer.call(provider.name, "leaf", "held", on_status=note, timeout=10).id
+        shared = provider._actor.ref.proxy().shared.get()
+
+        def lose(message: Any) -> None:  # (on the provider's thread, before the retry's Load)
+            if message.query_id == qid and shared.catalog.has_consumer(qid):
+                shared.unloading.release(qid, None, "lost")
+
+        try:
+            with intercept(provider, "load", before=lose), pytest.raises(rr.CallTimeoutError):
+                consumer.call(provider.name, "leaf", "held", query_id=qid, timeout=0.5)
+            assert eventually(lambda: (qid, rr.Status.FATAL) in heard, timeout=10)
+            assert [] == consumer.client_queries()
+        finally:
+            gate.set()
+        assert eventually(lambda: ["held", "held"] == unloads, timeout=10)  # each load, once
+        assert [] == provider.server_queries("leaf")
+        assert ["held", "held"] == loads
