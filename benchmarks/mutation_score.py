@@ -83,7 +83,7 @@ ORDER = (
     "crashloop", "first", "hang", "simnostate", "simpatient", "simstop", "simheal", "simhosts",
     "simshare", "simslow", "simrest", "simchain", "simdoubt", "simanswer", "simcommit", "simbackup",
     "simprogram", "simcancel", "simshed", "simkeptdep", "simretry", "simways", "simkept",
-    "simoverload", "simfair", "simtimeout", "bigtree", "killheavy",
+    "simoverload", "simfair", "simtimeout", "bigtree", "killheavy", "simlisten",
 )  # fmt: skip
 """The shipped plans the simulation runs, cheapest seed first (CPU s of seed 1, 2026-11-27:
 0.3 for the first four, 0.5-0.9 to simdoubt, 1.2-3.7 after; killheavy 4.8; simkept, added
