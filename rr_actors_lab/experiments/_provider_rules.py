@@ -149,6 +149,8 @@ class Providers:
             (`_supervision_rules.damaged_backup`): an id they lost is kept if its consumer
             lets it go (`let_go_of`: told `FATAL` at its reconcile, its own release, or
             its call failed).
+        heard_from_start: whether each registrar's first life was heard from its start
+            (`check`'s).
     """
 
     def __init__(
@@ -156,8 +158,11 @@ class Providers:
         facts: Facts,
         lives: dict[tuple[str, int], Life] | None = None,
         lost_backups: set[int] | None = None,
+        *,
+        heard_from_start: bool = True,
     ) -> None:
         self.lost_backups = lost_backups or set()
+        self.heard_from_start = heard_from_start  # (`False`: first lives' starts unheard)
         self.with_backup = facts.with_backup
         self.forgets = facts.forgets
         self.release_stamps = facts.released
@@ -195,7 +200,7 @@ class Providers:
     def begin(self, name: str, catalog: _Catalog, line: int, event: Any, life: int) -> None:
         """A new life of `name`: it restores first, or it lost what it held."""
         restoring = isinstance(event, events.CatalogRestored)
-        if name in self.with_backup and not restoring:
+        if name in self.with_backup and not restoring and (life or self.heard_from_start):
             self.found(
                 "restore-first",
                 f"{name} (pid {event.pid}) published {type(event).__name__} before its "

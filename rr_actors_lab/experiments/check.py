@@ -243,6 +243,8 @@ def check(
     backoff_s: float = 0.0,
     timeouts: Mapping[str, float] | None = None,
     damaged: Mapping[int, str] | None = None,
+    *,
+    heard_from_start: bool = True,
 ) -> Verdict:
     """Check one run's events against every rule of `RULES`.
 
@@ -261,6 +263,9 @@ def check(
         damaged: the backups the run's faults damaged between two lives (`corrupt_backup`):
             the pid of the manager process killed first -> how (`damaged-backup` judges
             its restarts; no event carries it).
+        heard_from_start: whether the history begins before the tree's start (`False`: its
+            plan's `listen = "after_start"`, each registrar's first life heard from after its
+            start, so `restore-first` does not judge that life's first event).
 
     Returns:
         The verdict and every finding. A violation about a registrar whose process lost
@@ -274,7 +279,7 @@ def check(
     managers = {e.child for _, e in history if isinstance(e, events.ChildStarted)}
     facts = gather(history)
     damage, refusals, lost_backups = _supervision_rules.damaged_backup(history, damaged or {})
-    providers = Providers(facts, lives, lost_backups)
+    providers = Providers(facts, lives, lost_backups, heard_from_start=heard_from_start)
     providers.run(steps)
     wanted = {(want.holder, want.query_id) for want in providers.expected}
     answered, spans = _consumer_rules.answered(steps, facts, wanted)
@@ -423,8 +428,10 @@ def _check_rows(event: events.Event) -> None:
             )
 
 
-def check_file(path: Path) -> dict[int, Verdict]:
+def check_file(path: Path, *, heard_from_start: bool | None = None) -> dict[int, Verdict]:
     """Check every run of an `events.jsonl` file (or of a directory holding one).
+
+    `heard_from_start`: `check`'s (`None`: from the `listen` of the plan copied beside it).
 
     Raises:
         ConfigError: no such file, or it cannot be read, or a line that cannot be read
@@ -440,7 +447,11 @@ def check_file(path: Path) -> dict[int, Verdict]:
         raise ConfigError(f"no events.jsonl at {path}")
     runs = _runs(json_lines(file), f"{file} line")
     resolve, backoff_s = _resolve_beside(file), _backoff_beside(file)
-    return {run: check(history, resolve, backoff_s) for run, history in sorted(runs.items())}
+    heard = _heard_from_start_beside(file) if heard_from_start is None else heard_from_start
+    return {
+        run: check(history, resolve, backoff_s, heard_from_start=heard)
+        for run, history in sorted(runs.items())
+    }
 
 
 def _resolve_beside(file: Path) -> str:
@@ -479,6 +490,16 @@ def _backoff_beside(file: Path) -> float:
     except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
         return 0.0
     return _backoff_of(plan.get("tree"))
+
+
+def _heard_from_start_beside(file: Path) -> bool:
+    """Whether the plan copied beside `file` had its runs' logs subscribe before the tree's
+    start (its `listen`; `True` without one that says `"after_start"`)."""
+    try:
+        plan = tomllib.loads((file.parent / "plan.toml").read_text())
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
+        return True
+    return plan.get("listen") != "after_start"
 
 
 def format_verdict(

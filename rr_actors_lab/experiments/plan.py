@@ -329,6 +329,9 @@ class Plan:
     recovery_timeout: Seconds = 10.0  # at the end, to wait for every manager to serve
     state: bool = True  # whether managers keep durable catalogs (a state directory per run)
     stop: Literal["reverse", "parallel"] = "reverse"  # how a run's end stops the tree
+    # when the run's event log subscribes: before the tree starts, or once it serves (its
+    # managers' starts unheard; their processes' forwarding switched on mid-run)
+    listen: Literal["before_start", "after_start"] = "before_start"
     workload: Workload = Workload(clients=0)  # noqa: RUF009 - frozen, so shared safely
     faults: tuple[FaultPlan, ...] = ()
     hosts: HostsPlan | None = None

@@ -336,7 +336,10 @@ def execute(spec: RunSpec, run_dir: Path, *, stop: threading.Event | None = None
         network = _hosts_of(plan, run_dir, spec.seed, log, stack, drive)
         state_dir = run_dir / "state" if plan.state else None
         sup = build_tree(plan, state_dir, seed=spec.seed, network=network)
-        subscription = sup.subscribe(log, maxsize=EVENT_QUEUE) if spec.record_events else None
+        late = plan.listen == "after_start"  # (after `sup.start()`, below)
+        subscription = (
+            sup.subscribe(log, maxsize=EVENT_QUEUE) if spec.record_events and not late else None
+        )
         if spec.trace:
             from rr_actors_lab import otel  # noqa: PLC0415 - only tracing needs it
 
@@ -345,6 +348,8 @@ def execute(spec: RunSpec, run_dir: Path, *, stop: threading.Event | None = None
             drive.step_span = exporting.root_span  # each step a trace of its own
         try:
             sup.start()
+            if spec.record_events and late:
+                subscription = sup.subscribe(log, maxsize=EVENT_QUEUE)
             try:
                 _start_hosts(drive, network, plan)
                 _drive(sup, spec, log, run_dir / "work", stop, drive)
@@ -363,7 +368,9 @@ def execute(spec: RunSpec, run_dir: Path, *, stop: threading.Event | None = None
     leaked = _leaked(spec.token)
     assert drive.injector is not None
     result = _result(spec, log, drive, leaked=leaked, run_dir=run_dir)
-    return _checked(result, run_dir / "events.jsonl") if spec.record_events else result
+    if not spec.record_events:
+        return result
+    return _checked(result, run_dir / "events.jsonl", heard_from_start=plan.listen != "after_start")
 
 
 def _hosts_of(
@@ -433,10 +440,10 @@ def _start_hosts(drive: _Drive, network: Any, plan: Plan) -> None:
         time.sleep(0.05)  # a poll of the network's directory (no event says "all joined")
 
 
-def _checked(result: RunResult, path: Path) -> RunResult:
+def _checked(result: RunResult, path: Path, *, heard_from_start: bool) -> RunResult:
     """The run's result with its verdict (`check.py`, over the run's `events.jsonl`)."""
     started = time.perf_counter()
-    verdicts = check.check_file(path)
+    verdicts = check.check_file(path, heard_from_start=heard_from_start)
     verdict = verdicts.get(result.run, check.check([]))
     return dataclasses.replace(
         result,

@@ -337,7 +337,14 @@ def _run_seed(plan: Plan, seed: int, started: float, steps: Steps) -> SimulatedR
     timeouts = {m.name: default for m in plan.tree.managers()}
     timeouts.update({f"client-{i}": plan.workload.timeout for i in plan.workload.callers()})
     damaged = _backup_faults.damaged(plan, records)
-    verdict = check.check(check.numbered(seen), resolve, backoff_s, timeouts, damaged)
+    verdict = check.check(
+        check.numbered(seen),
+        resolve,
+        backoff_s,
+        timeouts,
+        damaged,
+        heard_from_start=plan.listen == "before_start",
+    )
     return SimulatedRun(
         seed=seed,
         hash=history_hash(history),
@@ -487,6 +494,17 @@ def _injector(
     return faults, t0
 
 
+def _listen(
+    sup: rr.Supervisor, seen: Callable[[events.Event], None], plan: Plan, *, serving: bool
+) -> rr.Subscription[events.Event] | None:
+    """`seen` subscribed to the tree if this is when the plan's `listen` says (before the
+    start, or once it serves: then the running managers' processes are switched on to
+    forward, `EventRelay`); else `None`."""
+    if serving != (plan.listen == "after_start"):
+        return None
+    return sup.subscribe(seen, maxsize=EVENT_QUEUE)
+
+
 def _world(
     plan: Plan, seed: int, folder: Path, progress: _Progress
 ) -> tuple[list[events.Event], list[FaultRecord], float, tuple[int, int, int]]:
@@ -508,10 +526,11 @@ def _world(
         for faults in injector:
             faults.on_event(event)
 
-    subscription = sup.subscribe(seen, maxsize=EVENT_QUEUE)
+    subscription = _listen(sup, seen, plan, serving=False)
     records: list[FaultRecord] = []
     try:
         sup.start()
+        subscription = _listen(sup, seen, plan, serving=True) or subscription
         _start_hosts(plan, folder, seed, network, seen, hosts, progress.steps)
         clients = [Client(i, sup, plan, seed, run_dir=work) for i in plan.workload.callers()]
         progress.serving, progress.clients = True, clients
@@ -550,8 +569,9 @@ def _world(
         # raised, the others chained): a network left open would refuse the next seed's.
         with contextlib.ExitStack() as cleanup:
             cleanup.callback(network.close)
-            cleanup.callback(subscription.close)
-            cleanup.callback(subscription.wait_delivered)
+            if subscription is not None:  # (`listen = "after_start"`: none if the start failed)
+                cleanup.callback(subscription.close)
+                cleanup.callback(subscription.wait_delivered)
             for opened in injector:  # (second servers' supervisors: to the end of the run)
                 cleanup.callback(_close_injector, opened, progress)
             cleanup.callback(functools.partial(sup.stop, parallel=plan.stop == "parallel"))

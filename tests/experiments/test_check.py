@@ -120,6 +120,20 @@ def test_one_seeded_violation_of_each_rule_is_found_with_its_window(rule: str) -
     assert window == set(found[0].lines)
 
 
+def test_a_history_heard_from_after_the_start_judges_the_restores_of_restarts_only() -> None:
+    """A plan's `listen = "after_start"` (`simlisten`): the log subscribed once the tree
+    served, so erm's first life is heard from after its `CatalogRestored`; a restart that
+    serves before restoring is still found."""
+    restart = events.CatalogRestored("erm", (), (), (), pid=P + 1, seq=1)
+    heard = [*clean()[1:], restart]
+    assert {1} == _found(heard, "restore-first")  # (as if the log had heard the start)
+    verdict = check.check(numbered(heard), heard_from_start=False)
+    assert ("held", ()) == (verdict.verdict, verdict.findings)
+    serving = events.ResourceLoaded("erm", "cam", RID2, Q2, 0.01, 7, pid=P + 2, seq=1)
+    found = check.check(numbered([*heard, serving]), heard_from_start=False).findings
+    assert {len(heard) + 1} == {n for f in found if f.rule == "restore-first" for n in f.lines}
+
+
 def test_an_event_built_before_its_registrars_stop_and_sent_after_it_is_of_that_life() -> None:
     """A real `simslow` run (2026-11-26, load 7): db's status thread built a
     `ServerQueriesListed` (seq 108) as its actor stopped; the stop's `RegistrarStopped`
@@ -4359,6 +4373,11 @@ def shipped_files(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     return files
 
 
+def _heard_from_start(name: str) -> bool:
+    """`check`'s `heard_from_start` for shipped plan `name` (its `listen`)."""
+    return load_plan(plans.find(name)).listen == "before_start"
+
+
 @pytest.fixture(scope="module")
 def shipped(shipped_files: dict[str, Path]) -> dict[str, dict[int, list[check.Line]]]:
     """The histories of `shipped_files`."""
@@ -4372,7 +4391,7 @@ def test_the_shipped_plans_real_runs_hold(
     shipped: dict[str, dict[int, list[check.Line]]], shipped_files: dict[str, Path]
 ) -> None:
     verdicts = {
-        (name, number): check.check(history)
+        (name, number): check.check(history, heard_from_start=_heard_from_start(name))
         for name, runs in shipped.items()
         for number, history in runs.items()
     }
@@ -4568,11 +4587,12 @@ def test_each_mutation_of_the_shipped_plans_real_runs_is_caught_by_its_rule(
     mutate, rule = MUTATIONS[mutation]
     caught, missed = [], []
     for name, runs in shipped.items():
+        heard = _heard_from_start(name)
         for number, history in runs.items():
             mutated = mutate([event for _, event in history])
             if mutated is None:
                 continue  # (nothing of its kind in this run: no status, no restore, ...)
-            verdict = check.check(numbered(renumbered(mutated)))
+            verdict = check.check(numbered(renumbered(mutated)), heard_from_start=heard)
             rules = {f.rule for f in verdict.findings if f.kind == "violation"}
             (caught if rule in rules else missed).append((name, number, sorted(rules)))
     assert caught, f"{mutation} applies to no run of the shipped plans"

@@ -53,6 +53,7 @@ SHIPPED = {
     "simbackup",
     "simstop",
     "simtimeout",
+    "simlisten",
     "bigtree",
 }
 """Every plan shipped in the package; the tutorial's `first` runs in the docs test."""

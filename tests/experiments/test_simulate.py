@@ -1244,6 +1244,7 @@ SIMULATED = [
     "simbackup",
     "simstop",
     "simtimeout",
+    "simlisten",
 ]
 """The shipped plans run over two seeds here (killheavy below, for 2 s; bigtree below, one seed)."""
 
