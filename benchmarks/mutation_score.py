@@ -19,8 +19,9 @@ command, not a search of seeded simulations:
       plan and seed (then the search goes on from the next seed)
 
 `--seeds` counts seeds per plan, not runs: any budget searches every plan named (a count of
-runs, 20 say, ran the first 20 plans' seed 1 and never the last four). One seed of each of
-the 24 plans is about 30 CPU s; a search that `--cpu` ends first is a timeout, not a survivor.
+runs, 20 say, ran the first 20 plans' seed 1 and never the last four). One seed of each plan in
+`ORDER` (24 then, 29 now) was about 30 CPU s; a search that `--cpu` ends first is a timeout,
+not a survivor.
 
 Each mutant is then one of:
 
