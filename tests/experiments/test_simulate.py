@@ -135,9 +135,9 @@ def test_a_seeds_history_and_verdict_are_made_with_the_collector_off(
     enabled: list[bool] = []
     check_history = check.check
 
-    def checked(history: Any, *policy: Any) -> Any:
+    def checked(history: Any, *policy: Any, **options: Any) -> Any:
         enabled.append(gc.isenabled())
-        return check_history(history, *policy)
+        return check_history(history, *policy, **options)
 
     monkeypatch.setattr(check, "check", checked)
     run = simulate.run_seed(simkill(), 1)
