@@ -100,7 +100,7 @@ COSMIC_RAY = importlib.metadata.version("cosmic-ray")
 LEFT_OUT = ("core/VariableInserter", "core/VariableReplacer")  # (random: not reproducible)
 
 EQUIVALENT: dict[str, str] = {
-    "_registrar/consumer.py:734:NumberReplacer:1": "an id never answered: 0 < epoch and "
+    "_registrar/consumer.py:735:NumberReplacer:1": "an id never answered: 0 < epoch and "
     "-1 < epoch alike, every epoch asked being new_epoch()'s, at least 1",
     "_supervision/policy.py:263:ReplaceComparisonOperator_NotEq_IsNot": "incarnations are "
     "ints from 0 up by 1: `is not` is `!=` in CPython up to 256 (its small ints), so for "
@@ -153,7 +153,7 @@ EQUIVALENT: dict[str, str] = {
     "_supervision/children.py:412:NumberReplacer:1": "incarnations are only bumped by 1 and "
     "compared with `!=` to the one a watcher posted (no event or page shows one): starting "
     "at -1 shifts every one alike",
-    "_registrar/consumer.py:734:NumberReplacer": "epochs are only compared with each other "
+    "_registrar/consumer.py:735:NumberReplacer": "epochs are only compared with each other "
     "and with 0 (an id answered before any list), in one process: counting by 2 keeps every "
     "order",
     "_supervision/children.py:189:ReplaceComparisonOperator_Eq_LtE": "past `one_for_one` "

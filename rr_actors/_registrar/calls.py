@@ -510,8 +510,8 @@ class Calls:
         probes = self.probes()
         if probes is not None:
             probes.fire("withdraw", reply.query())
-        give_back(reply.serving_rr, reply.query_id, self.name, True)  # (then the record: a crash
-        self.withdrawn(reply.query_id, attempt, reply.serving_rr, reply.server, why)  # keeps it)
+        give_back(reply.serving_rr, reply.query_id, self.name, withdrawn=True)  # (then the
+        self.withdrawn(reply.query_id, attempt, reply.serving_rr, reply.server, why)  # record)
 
     def withdrawn(self, qid: str, attempt: CallAttempt, to: str, server: str, why: str) -> None:
         """Tell the actor its caller withdrew `attempt` of `qid` (its id given back): it forgets

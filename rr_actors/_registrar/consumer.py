@@ -614,8 +614,9 @@ class Answers:
             flights.reset(qid, None if gone else message.serving_rr, message.parent)  # hold it)
         record = self.registrar.catalog.client(qid)
         stale = current is not None and current is not message.attempt
-        withdrawn = message.withdrawn and not self.registrar.stopping  # (a stop gives all back)
-        retried = not (stale or record is None or withdrawn != message.withdrawn) and record.loaded
+        stopped = message.withdrawn and self.registrar.stopping  # (a stop gives all back)
+        withdrawn = message.withdrawn and not stopped
+        retried = not stale and record is not None and record.loaded and not stopped
         try:
             if stale:
                 pass  # a stale failure of an earlier attempt: a retry's is due
