@@ -446,21 +446,28 @@ def check_file(path: Path, *, heard_from_start: bool | None = None) -> dict[int,
             )
         raise ConfigError(f"no events.jsonl at {path}")
     runs = _runs(json_lines(file), f"{file} line")
-    resolve, backoff_s = _resolve_beside(file), _backoff_beside(file)
-    heard = _heard_from_start_beside(file) if heard_from_start is None else heard_from_start
+    plan = _plan_beside(file)
+    resolve, backoff_s = _resolve_of(plan), _backoff_of(plan.get("tree"))
+    heard = plan.get("listen") != "after_start" if heard_from_start is None else heard_from_start
     return {
         run: check(history, resolve, backoff_s, heard_from_start=heard)
         for run, history in sorted(runs.items())
     }
 
 
-def _resolve_beside(file: Path) -> str:
-    """The rule 22 policy of the plan copied beside `file` (its `plan.toml`'s `[hosts]`
-    `resolve`); `"first_served"`, the default, without one that says it."""
+def _plan_beside(file: Path) -> dict[str, Any]:
+    """The plan copied beside `file` (its `plan.toml`), as TOML data; `{}` without one: its
+    `listen` then `"before_start"`, and the defaults below."""
     try:
-        hosts = tomllib.loads((file.parent / "plan.toml").read_text()).get("hosts", {})
+        return tomllib.loads((file.parent / "plan.toml").read_text())
     except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
-        return "first_served"
+        return {}
+
+
+def _resolve_of(plan: dict[str, Any]) -> str:
+    """The rule 22 policy of a plan's TOML data (its `[hosts]` `resolve`); `"first_served"`,
+    the default, without one that says it."""
+    hosts = plan.get("hosts", {})
     resolve = hosts.get("resolve") if isinstance(hosts, dict) else None
     return resolve if isinstance(resolve, str) and resolve else "first_served"
 
@@ -481,25 +488,6 @@ def _backoff_of(tree: object) -> float:
 
 def _number(value: object) -> float:
     return float(value) if isinstance(value, int | float) and not isinstance(value, bool) else 0.0
-
-
-def _backoff_beside(file: Path) -> float:
-    """`_backoff_of` the plan copied beside `file`; 0.0 without one."""
-    try:
-        plan = tomllib.loads((file.parent / "plan.toml").read_text())
-    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
-        return 0.0
-    return _backoff_of(plan.get("tree"))
-
-
-def _heard_from_start_beside(file: Path) -> bool:
-    """Whether the plan copied beside `file` had its runs' logs subscribe before the tree's
-    start (its `listen`; `True` without one that says `"after_start"`)."""
-    try:
-        plan = tomllib.loads((file.parent / "plan.toml").read_text())
-    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
-        return True
-    return plan.get("listen") != "after_start"
 
 
 def format_verdict(
