@@ -101,10 +101,11 @@ LEFT_OUT = ("core/VariableInserter", "core/VariableReplacer")  # (random: not re
 
 EQUIVALENT: dict[str, str] = {
     "_registrar/status.py:550:ReplaceComparisonOperator_Lt_Is": "`_Call.lapse`'s early "
-    "return is a shortcut: `wake` is `_earliest(self, *merged)` after every write of `wake`, "
-    "`settled` or `merged` (`__init__`, `merge`, `settle`, `lapse`, their only writers), so "
-    "with now < wake no call is overdue and the rest returns [] and sets `wake` to itself; "
-    "`now is self.wake` never holds (`wake` is `monotonic() + patience`, a new float)",
+    "return is a shortcut: on every call it runs on (running, or queued in a lane) `wake` is "
+    "`_earliest(self, *merged)` (`__init__`, `merge`, `settle` and `lapse` keep it so; a call "
+    "merged into another leaves its lane and is never lapsed again), so with now < wake no "
+    "call is overdue and the rest returns [] and sets `wake` to itself; `now is self.wake` "
+    "never holds (`wake` is `monotonic() + patience`, a new float)",
     "_registrar/consumer.py:735:NumberReplacer:1": "an id never answered: 0 < epoch and "
     "-1 < epoch alike, every epoch asked being new_epoch()'s, at least 1",
     "_supervision/policy.py:263:ReplaceComparisonOperator_NotEq_IsNot": "incarnations are "
