@@ -166,6 +166,11 @@ EQUIVALENT: dict[str, str] = {
     "_store/files.py:730:ReplaceFalseWithTrue": "a new `CommitCount` never maps the -shm "
     "until its first `reopen`/`close`: `committed` takes its slow path, the -wal header's "
     "salts, which SQLite copies into the -shm's; the same count and record (as files.py:712)",
+    "_supervision/policy.py:339:ReplaceComparisonOperator_NotEq_Gt": "a `Restart` carries "
+    "the generation it was made in, and `cancel` only adds 1: `>` is never true; a stale one "
+    "(`<`) then `continue`s for each child, as `_due`, emptied at each new generation, holds "
+    "only that generation's `Restart`s, never it (its names are the node's own, `by_name` "
+    "fixed): no start, state or event differs",
 }
 """Survivors shown equivalent: mutant id (`FILE:LINE:OPERATOR[:N]`) -> the line that shows it."""
 
