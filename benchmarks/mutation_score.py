@@ -84,7 +84,7 @@ ORDER = (
     "crashloop", "first", "hang", "simnostate", "simlisten", "simpatient", "simstop", "simheal",
     "simhosts", "simshare", "simslow", "simrest", "simchain", "simdoubt", "simanswer", "simcommit",
     "simbackup", "simprogram", "simcancel", "simshed", "simkeptdep", "simretry", "simways",
-    "simkept", "simoverload", "simfair", "simtimeout", "bigtree", "killheavy",
+    "simkept", "simoverload", "simfair", "simtimeout", "bigtree", "killheavy", "simescalate",
 )  # fmt: skip
 """The shipped plans the simulation runs, cheapest seed first (CPU s of seed 1, 2026-11-27:
 0.3 for the first four, 0.5-0.9 to simdoubt, 1.2-3.7 after; killheavy 4.8; simkept, added
@@ -93,7 +93,8 @@ added 2026-11-28, 0.85: after simdoubt; simkeptdep, added 2026-11-28, 1.5-1.9: b
 simretry; simpatient, added then, 0.2: after simnostate; simstop, added then, 0.3: after
 simpatient; simbackup, added then, 0.7-1.2: after simcommit; simtimeout, added then: after
 simoverload; simfair, added then, 1.5-1.7: after simoverload; simlisten, added then,
-0.2-0.4: after simnostate)."""
+0.2-0.4: after simnostate; simescalate, added 2026-11-29, 0.34: last, out of that order,
+so that the lines above stay as they were)."""
 
 COSMIC_RAY = importlib.metadata.version("cosmic-ray")
 
@@ -172,6 +173,11 @@ EQUIVALENT: dict[str, str] = {
     "_store/files.py:730:ReplaceFalseWithTrue": "a new `CommitCount` never maps the -shm "
     "until its first `reopen`/`close`: `committed` takes its slow path, the -wal header's "
     "salts, which SQLite copies into the -shm's; the same count and record (as files.py:712)",
+    "_supervision/policy.py:339:ReplaceComparisonOperator_NotEq_Gt": "a `Restart` carries "
+    "the generation it was made in, and `cancel` only adds 1: `>` is never true; a stale one "
+    "(`<`) then `continue`s for each child, as `_due`, emptied at each new generation, holds "
+    "only that generation's `Restart`s, never it (its names are the node's own, `by_name` "
+    "fixed): no start, state or event differs",
 }
 """Survivors shown equivalent: mutant id (`FILE:LINE:OPERATOR[:N]`) -> the line that shows it."""
 

@@ -248,13 +248,18 @@ def reported_lost(
     `unknown at reconcile` (rule 20): the provider's life that answered had not added it, or
     had released it. `provider lost` (rule 19): the life that held it died; one seen alive
     after on the same host was not lost (across hosts a cut counts as lost), unless it let the
-    id go at its reconcile with the consumer.
+    id go at its reconcile with the consumer; nor was one whose next life, on the same host,
+    restored it held for that consumer (its supervisor restarted it: rule 19's other half).
     """
     reconciled: set[tuple[str, str, str, int]] = {
         (e.registrar, e.consumer, e.query_id, e.hlc)
         for _, e in history
         if isinstance(e, events.ConsumerReleased) and e.reason == "reconcile"
     }
+    restores = {line: e for line, e in history if isinstance(e, events.CatalogRestored)}
+    by_name: dict[str, list[Life]] = defaultdict(list)  # name -> its lives, in order
+    for (name, _), life in sorted(lives.items()):
+        by_name[name].append(life)
     findings: list[Finding] = []
     seconds: dict[str, list[Life]] = defaultdict(list)  # name -> lives of second servers
     for life in lives.values():
@@ -266,6 +271,10 @@ def reported_lost(
         provider, qid, stamp = event.serving_rr, event.query_id, event.hlc
         if any(s.start <= stamp and not s.ended_before(stamp) for s in seconds[provider]):
             continue  # (two served the name, behind a cut: either may have answered)
+        back = _restored(line, event, by_name[provider], restores)
+        if back is not None:
+            findings.append(back)
+            continue
         for holding in holdings.get((provider, qid), ()):
             if holding.since >= stamp or (holding.until is not None and holding.until <= stamp):
                 continue
@@ -294,6 +303,35 @@ def reported_lost(
             )
             break
     return findings
+
+
+def _restored(
+    line: int,
+    event: events.QueryForgotten,
+    lives: Sequence[Life],
+    restores: Mapping[int, events.CatalogRestored],
+) -> Finding | None:
+    """`reported-lost`'s other half of rule 19 (a provider its supervisor restarts is not
+    lost): a `provider lost` whose provider's life then (or next: a new process's first
+    stamps may be below the consumer's) began by restoring the id held for that consumer,
+    on its host."""
+    if event.reason != "provider lost":
+        return None
+    now = next((life for life in lives if not life.ended_before(event.hlc)), None)
+    back = None if now is None or now.beside else restores.get(now.first_line)
+    if now is None or back is None or back.host != event.host:
+        return None
+    if not any(row[0] == event.query_id and row[2] == event.registrar for row in back.consumers):
+        return None
+    return Finding(
+        "reported-lost",
+        "violation",
+        f"{event.registrar}: query {event.query_id[:8]} told FATAL (provider lost) and "
+        f"forgotten, but {event.serving_rr} came back and restored it (restarted by its "
+        f"supervisor: not lost, rule 19)",
+        (line, now.first_line),
+        (event.registrar, event.serving_rr),
+    )
 
 
 def end(steps: Sequence[Step], history: Sequence[Line]) -> list[Finding]:

@@ -1660,6 +1660,30 @@ def test_an_id_told_lost_after_its_providers_life_ended_holds() -> None:
     assert [] == _of_rule([*h[:4], exited, told, forgot], "reported-lost")
 
 
+def test_an_id_told_lost_that_the_providers_restart_restores_is_found() -> None:
+    """Rule 19: a provider its supervisor restarts is not lost. erm is killed, cm is told it
+    is lost (a nested supervisor's give-up below the root reported its crashed child dead:
+    the mutant policy.py:412 at simescalate seed 1), then erm's next life restores Q1 held
+    for cm: the FATAL was wrong."""
+    h = _stamped(clean())
+    exited = events.ChildExited("sup", "erm", P, "killed", hlc=2_000)
+    told = events.StatusDelivered("cm", Q1, rr.Status.FATAL, 1, 0.0, "s9", pid=C, hlc=2_001)
+    forgot = events.QueryForgotten("cm", Q1, "erm", "provider lost", pid=C, hlc=2_002, host="h")
+    rows = ((RID, "cam", "loaded", "42", ""),)
+    back = events.CatalogRestored(
+        "erm", rows, ((Q1, RID, "cm"), (Q2, RID, "cm")), (), pid=P + 1, hlc=1_999, host="h"
+    )  # (its stamp before the forget's: a new process's clock, at the same instant)
+    lost = [*h[:4], exited, told, forgot]
+    assert {7, 8} == _found([*lost, back], "reported-lost")
+    # restored elsewhere (a cut: lost on this side), or without it, or no restart: no finding
+    for after in ([dataclasses.replace(back, host="other")], [_without_q1(back)], []):
+        assert [] == _of_rule([*lost, *after], "reported-lost")
+
+
+def _without_q1(restored: events.CatalogRestored) -> events.CatalogRestored:
+    return dataclasses.replace(restored, consumers=((Q2, RID, "cm"),))
+
+
 def test_a_consumer_that_forgets_an_id_as_lost_without_telling_itself_fatal_is_found() -> None:
     history = _without(_reported("provider lost", host="other"), 4)
     assert {5} == _found(history, "status-reached")

@@ -55,6 +55,7 @@ SHIPPED = {
     "simtimeout",
     "simlisten",
     "bigtree",
+    "simescalate",
 }
 """Every plan shipped in the package; the tutorial's `first` runs in the docs test."""
 
