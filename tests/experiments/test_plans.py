@@ -54,6 +54,7 @@ SHIPPED = {
     "simstop",
     "simtimeout",
     "simlisten",
+    "simwithdraw",
     "bigtree",
 }
 """Every plan shipped in the package; the tutorial's `first` runs in the docs test."""
