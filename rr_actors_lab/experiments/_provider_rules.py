@@ -853,7 +853,8 @@ def overload_paced(steps: list[Step]) -> list[Finding]:
     `ServerOverloaded` counts at least its own refusal (`refused` >= 1) at the server's bound
     (`pending` >= `bound`), and comes at least `OVERLOAD_EVERY_S` (less `OVERLOAD_SLACK_S`)
     after the previous one of its server in that registrar's life (by `at`: a new life, as a
-    new process, counts afresh)."""
+    new process, counts afresh); the first of its server in a life tells its first refusal
+    at once (`refused` 1)."""
     findings: list[Finding] = []
     last: dict[tuple[str, str], tuple[float, int]] = {}  # (registrar, server) -> (at, line)
     for name, line, event, new, _life in steps:
@@ -876,6 +877,18 @@ def overload_paced(steps: list[Step]) -> list[Finding]:
                 )
             )
         before = last.get(key)
+        if before is None and event.refused > 1:  # (its first refusal in a life told at once)
+            findings.append(
+                Finding(
+                    "overload-paced",
+                    "violation",
+                    f"{name}/{event.server}: first told overloaded in this life with "
+                    f"{event.refused} refused: a server tells its first refusal at once "
+                    f"(refused 1), and counts the next ones in the one a second later",
+                    (line,),
+                    (name,),
+                )
+            )
         if before is not None and event.at - before[0] < OVERLOAD_EVERY_S - OVERLOAD_SLACK_S:
             findings.append(
                 Finding(

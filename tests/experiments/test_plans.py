@@ -54,6 +54,7 @@ SHIPPED = {
     "simstop",
     "simtimeout",
     "simlisten",
+    "simwithdraw",
     "bigtree",
     "simescalate",
 }

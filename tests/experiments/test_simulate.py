@@ -1246,6 +1246,7 @@ SIMULATED = [
     "simtimeout",
     "simlisten",
     "simescalate",
+    "simwithdraw",
 ]
 """The shipped plans run over two seeds here (killheavy below, for 2 s; bigtree below, one seed)."""
 
