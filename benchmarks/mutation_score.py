@@ -81,10 +81,10 @@ PLANS = LAB / "experiments" / "plans"
 MODULES = ("_registrar", "_store", "_catalog", "_supervision")
 
 ORDER = (
-    "crashloop", "first", "hang", "simnostate", "simlisten", "simpatient", "simstop", "simheal",
-    "simhosts", "simshare", "simslow", "simrest", "simchain", "simdoubt", "simanswer", "simcommit",
-    "simbackup", "simprogram", "simcancel", "simshed", "simkeptdep", "simretry", "simways",
-    "simkept", "simoverload", "simfair", "simtimeout", "bigtree", "killheavy",
+    "crashloop", "first", "hang", "simnostate", "simlisten", "simpatient", "simstop", "simlong",
+    "simheal", "simhosts", "simshare", "simslow", "simrest", "simchain", "simdoubt", "simanswer",
+    "simcommit", "simbackup", "simprogram", "simcancel", "simshed", "simkeptdep", "simretry",
+    "simways", "simkept", "simoverload", "simfair", "simtimeout", "bigtree", "killheavy",
 )  # fmt: skip
 """The shipped plans the simulation runs, cheapest seed first (CPU s of seed 1, 2026-11-27:
 0.3 for the first four, 0.5-0.9 to simdoubt, 1.2-3.7 after; killheavy 4.8; simkept, added
@@ -93,7 +93,7 @@ added 2026-11-28, 0.85: after simdoubt; simkeptdep, added 2026-11-28, 1.5-1.9: b
 simretry; simpatient, added then, 0.2: after simnostate; simstop, added then, 0.3: after
 simpatient; simbackup, added then, 0.7-1.2: after simcommit; simtimeout, added then: after
 simoverload; simfair, added then, 1.5-1.7: after simoverload; simlisten, added then,
-0.2-0.4: after simnostate)."""
+0.2-0.4: after simnostate; simlong, added 2026-11-29, 0.2-0.4: after simstop)."""
 
 COSMIC_RAY = importlib.metadata.version("cosmic-ray")
 

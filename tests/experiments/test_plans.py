@@ -54,6 +54,7 @@ SHIPPED = {
     "simstop",
     "simtimeout",
     "simlisten",
+    "simlong",
     "bigtree",
 }
 """Every plan shipped in the package; the tutorial's `first` runs in the docs test."""

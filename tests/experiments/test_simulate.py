@@ -1245,6 +1245,7 @@ SIMULATED = [
     "simstop",
     "simtimeout",
     "simlisten",
+    "simlong",
 ]
 """The shipped plans run over two seeds here (killheavy below, for 2 s; bigtree below, one seed)."""
 
