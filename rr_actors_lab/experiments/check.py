@@ -184,6 +184,54 @@ KEEPS = {
 """What each named rule 22 policy (`[hosts]`' `resolve`) keeps, as `one-name` words it."""
 
 
+def _undigested(history: Sequence[Line]) -> list[Finding]:
+    """`dedup` (rule 1), in a run whose requests are all plain values: each load carries its
+    request's digest (`ResourceLoaded.digest`, `None` only for a value that is not plain):
+    without one, no equal request finds the stored resource by its digest."""
+    return [
+        Finding(
+            "dedup",
+            "violation",
+            f"{e.registrar}/{e.server}: resource {e.resource_id[:8]} loaded without the "
+            "digest of its request, a plain value (rule 1: an equal one finds it by digest)",
+            (line,),
+            (e.registrar,),
+        )
+        for line, e in history
+        if isinstance(e, events.ResourceLoaded) and e.digest is None
+    ]
+
+
+SERVICE = "rr_actors_lab.experiments.services:service"
+"""The setup whose loads send on only requests a plan names (`uses_request`) or their own."""
+PLAIN_FACTORIES = frozenset({"rr_actors_lab.experiments.services:long_request"})
+"""The lab's factories whose requests are plain values (`plain_plan`)."""
+
+
+def plain_plan(
+    calls: Iterable[tuple[object, object]], managers: Iterable[tuple[object, Any]]
+) -> bool:
+    """Whether every request of a plan is a plain value (`check`'s `plain_requests`): its
+    calls' `(request, factory)` TOML values without a factory (or one of `PLAIN_FACTORIES`),
+    its managers' `(setup, options)` all `SERVICE`'s (another's requests are unknown), with
+    TOML options (a `uses_request`); a date or time in any of them has no digest."""
+
+    def plain(value: object) -> bool:
+        if isinstance(value, list):
+            return all(map(plain, value))
+        if isinstance(value, dict):
+            return all(map(plain, value.values()))
+        return value is None or type(value) in (str, int, float, bool)
+
+    calls_plain = (
+        factory in PLAIN_FACTORIES or (factory is None and plain(request))
+        for request, factory in calls
+    )
+    return all(calls_plain) and all(
+        setup == SERVICE and plain(options) for setup, options in managers
+    )
+
+
 def _one_name_rule(
     history: Sequence[Line], lives: dict[tuple[str, int], Life], resolve: str
 ) -> list[Finding]:
@@ -245,6 +293,7 @@ def check(
     damaged: Mapping[int, str] | None = None,
     *,
     heard_from_start: bool = True,
+    plain_requests: bool = False,
 ) -> Verdict:
     """Check one run's events against every rule of `RULES`.
 
@@ -266,6 +315,8 @@ def check(
         heard_from_start: whether the history begins before the tree's start (`False`: its
             plan's `listen = "after_start"`, each registrar's first life heard from after its
             start, so `restore-first` does not judge that life's first event).
+        plain_requests: whether every request of the run is a plain value (`plain_plan`:
+            its plan's TOML requests, no factory): `dedup` then wants each load's digest.
 
     Returns:
         The verdict and every finding. A violation about a registrar whose process lost
@@ -319,6 +370,7 @@ def check(
         *_supervision_rules.life_end(history, refusals),
         *damage,
         *_one_name_rule(history, lives, resolve),
+        *(_undigested(history) if plain_requests else ()),
     ]
     findings = [
         dataclasses.replace(f, kind="unverifiable", message=f"{f.message} (events were lost)")
@@ -449,10 +501,24 @@ def check_file(path: Path, *, heard_from_start: bool | None = None) -> dict[int,
     plan = _plan_beside(file)
     resolve, backoff_s = _resolve_of(plan), _backoff_of(plan.get("tree"))
     heard = plan.get("listen") != "after_start" if heard_from_start is None else heard_from_start
+    workload = plan.get("workload", {})
+    plain = bool(plan) and plain_plan(
+        ((c.get("request", "{key}"), c.get("factory")) for c in workload.get("calls", [])),
+        ((m.get("setup"), m.get("options", {})) for m in _managers_of(plan.get("tree", {}))),
+    )
     return {
-        run: check(history, resolve, backoff_s, heard_from_start=heard)
+        run: check(history, resolve, backoff_s, heard_from_start=heard, plain_requests=plain)
         for run, history in sorted(runs.items())
     }
+
+
+def _managers_of(tree: dict[str, Any]) -> Iterator[dict[str, Any]]:
+    """The managers of a plan's TOML `[tree]` (a child with a `setup`), depth first."""
+    for child in tree.get("children", []):
+        if "setup" in child:
+            yield child
+        else:
+            yield from _managers_of(child)
 
 
 def _plan_beside(file: Path) -> dict[str, Any]:

@@ -26,7 +26,7 @@ from typing import Any
 import rr_actors as rr
 from rr_actors._core import runtime
 
-__all__ = ["service"]
+__all__ = ["long_request", "service"]
 
 
 def service(
@@ -161,3 +161,14 @@ def _list_queries(registrar: rr.ResourceRegistrar, server: str, every: float) ->
             return
         except rr.RrError:
             continue  # (timed out: the next one)
+
+
+def long_request(key: str, _context: Any) -> dict[str, Any]:
+    """A plan's `factory`: a request of plain values (`request_digest` digests it) that a
+    template cannot make (a `frozenset`, `bytes`), whose `repr` passes the 200 characters
+    an error message shows of it (`describe`): as `simlong` calls."""
+    return {
+        **{f"{n}-field-of-a-long-request": f"{key}-{n}-value-long-enough" for n in "abcd"},
+        "z-set": frozenset({key}),
+        "z-bytes": key.encode(),
+    }

@@ -344,6 +344,10 @@ def _run_seed(plan: Plan, seed: int, started: float, steps: Steps) -> SimulatedR
         timeouts,
         damaged,
         heard_from_start=plan.listen == "before_start",
+        plain_requests=check.plain_plan(
+            ((c.request, c.factory) for c in plan.workload.calls),
+            ((m.setup, m.options) for m in plan.managers()),
+        ),
     )
     return SimulatedRun(
         seed=seed,

@@ -4,6 +4,7 @@ found, with the lines that show it; mutations of a real history are found too.""
 from __future__ import annotations
 
 import dataclasses
+import datetime
 import importlib
 import inspect
 import json
@@ -199,6 +200,27 @@ def test_an_equal_load_beside_a_resource_reported_fatal_is_no_dedup_violation() 
     assert ["dedup"] == [f.rule for f in check.check(numbered([*live, restored, third])).findings]
     unmarked = events.CatalogRestored("erm", ((RID, "cam", "loaded", "42", ""),), (), (), pid=P + 1)
     assert "violated" == check.check(numbered([*live, unmarked, third])).verdict
+
+
+def test_a_load_without_a_digest_in_a_run_of_plain_requests_is_a_dedup_violation() -> None:
+    # (the mutant digest.py:56 `cls <= str`, a TypeError: every request lost its digest)
+    h = clean()
+    undigested = dataclasses.replace(h[1], digest=None)
+    bare = [h[0], undigested, *h[2:]]
+
+    assert "held" == check.check(numbered(h), plain_requests=True).verdict
+    assert "held" == check.check(numbered(bare)).verdict  # (a request may be no plain value)
+    verdict = check.check(numbered(bare), plain_requests=True)
+    assert [("dedup", "violation", (2,))] == [(f.rule, f.kind, f.lines) for f in verdict.findings]
+
+
+def test_a_plans_requests_are_plain_without_a_factory_a_date_or_another_setup() -> None:
+    service = (check.SERVICE, {"uses": ["db"], "uses_request": {"k": [1, 2.5, True]}})
+    assert check.plain_plan([("{key}", None), ({"a": ["{key}"]}, None)], [service])
+    assert not check.plain_plan([("{key}", "mod:make")], [service])
+    assert not check.plain_plan([(datetime.date(2026, 1, 1), None)], [service])
+    assert not check.plain_plan([], [(check.SERVICE, {"uses_request": datetime.time(1)})])
+    assert not check.plain_plan([("{key}", None)], [("my.module:setup", {})])
 
 
 def test_a_released_but_unheld_id_and_an_add_after_the_unload_are_violations() -> None:

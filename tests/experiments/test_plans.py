@@ -55,6 +55,7 @@ SHIPPED = {
     "simtimeout",
     "simlisten",
     "simwithdraw",
+    "simlong",
     "bigtree",
     "simescalate",
 }

@@ -1247,6 +1247,7 @@ SIMULATED = [
     "simlisten",
     "simescalate",
     "simwithdraw",
+    "simlong",
 ]
 """The shipped plans run over two seeds here (killheavy below, for 2 s; bigtree below, one seed)."""
 
