@@ -166,6 +166,17 @@ EQUIVALENT: dict[str, str] = {
     "_store/files.py:730:ReplaceFalseWithTrue": "a new `CommitCount` never maps the -shm "
     "until its first `reopen`/`close`: `committed` takes its slow path, the -wal header's "
     "salts, which SQLite copies into the -shm's; the same count and record (as files.py:712)",
+    "_supervision/children.py:347:RemoveDecorator": "the `@property` of `Level.giving_up`, "
+    "a `Protocol` stub no class inherits (`Record`, its one subclass, is a `Protocol` too; "
+    "`Node` defines its own property): nothing reads the stub (as children.py:351)",
+    "_registrar/life.py:994:ReplaceBinaryOperator_Sub_Pow": "`life.lost_everything`'s "
+    "`also` is never passed (its one runtime caller, `tree.lost_everything`, passes `name` "
+    "and `handle`; no lab code calls it): `also` is an empty set, the loop never reached",
+    "_registrar/actor.py:469:ReplaceFalseWithTrue:1": "`launch`'s cleanup of a failed "
+    "start: `open_catalog` made the `Saver` just before with nothing pending, and nothing "
+    "stages a change before the actor's own thread runs (`RegistrarActor.__init__` and its "
+    "parts only build state), so `flush()` writes nothing (the one way past: an asynchronous "
+    "KeyboardInterrupt inside `Thread.start` after the actor's thread began)",
 }
 """Survivors shown equivalent: mutant id (`FILE:LINE:OPERATOR[:N]`) -> the line that shows it."""
 
