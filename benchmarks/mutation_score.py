@@ -81,7 +81,8 @@ PLANS = LAB / "experiments" / "plans"
 MODULES = ("_registrar", "_store", "_catalog", "_supervision")
 
 ORDER = (
-    "crashloop", "first", "hang", "simnostate", "simlisten", "simpatient", "simstop", "simheal",
+    "crashloop", "first", "hang", "simnostate", "simlisten", "simpatient", "simstop", "simgone",
+    "simheal",
     "simhosts", "simshare", "simslow", "simrest", "simchain", "simdoubt", "simanswer", "simcommit",
     "simbackup", "simprogram", "simcancel", "simshed", "simkeptdep", "simretry", "simways",
     "simkept", "simoverload", "simfair", "simtimeout", "bigtree", "killheavy",
@@ -93,7 +94,7 @@ added 2026-11-28, 0.85: after simdoubt; simkeptdep, added 2026-11-28, 1.5-1.9: b
 simretry; simpatient, added then, 0.2: after simnostate; simstop, added then, 0.3: after
 simpatient; simbackup, added then, 0.7-1.2: after simcommit; simtimeout, added then: after
 simoverload; simfair, added then, 1.5-1.7: after simoverload; simlisten, added then,
-0.2-0.4: after simnostate)."""
+0.2-0.4: after simnostate; simgone, added 2026-11-29, 0.15-0.25: after simstop)."""
 
 COSMIC_RAY = importlib.metadata.version("cosmic-ray")
 
