@@ -82,10 +82,10 @@ MODULES = ("_registrar", "_store", "_catalog", "_supervision")
 
 ORDER = (
     "crashloop", "first", "hang", "simnostate", "simlisten", "simpatient", "simstop", "simlong",
-    "simheal", "simhosts", "simshare", "simslow", "simrest", "simchain", "simdoubt", "simanswer",
-    "simcommit", "simbackup", "simprogram", "simcancel", "simshed", "simkeptdep", "simretry",
-    "simways", "simkept", "simoverload", "simfair", "simtimeout", "bigtree", "killheavy",
-    "simescalate", "simwithdraw",
+    "simgone", "simheal", "simhosts", "simshare", "simslow", "simrest", "simchain", "simdoubt",
+    "simanswer", "simcommit", "simbackup", "simprogram", "simcancel", "simshed", "simkeptdep",
+    "simretry", "simways", "simkept", "simoverload", "simfair", "simtimeout", "bigtree",
+    "killheavy", "simescalate", "simwithdraw",
 )  # fmt: skip
 """The shipped plans the simulation runs, cheapest seed first (CPU s of seed 1, 2026-11-27:
 0.3 for the first four, 0.5-0.9 to simdoubt, 1.2-3.7 after; killheavy 4.8; simkept, added
@@ -94,8 +94,9 @@ added 2026-11-28, 0.85: after simdoubt; simkeptdep, added 2026-11-28, 1.5-1.9: b
 simretry; simpatient, added then, 0.2: after simnostate; simstop, added then, 0.3: after
 simpatient; simbackup, added then, 0.7-1.2: after simcommit; simtimeout, added then: after
 simoverload; simfair, added then, 1.5-1.7: after simoverload; simlisten, added then,
-0.2-0.4: after simnostate; simlong, added 2026-11-29, 0.2-0.4: after simstop;
-simescalate and simwithdraw, added then, 0.34 and 0.39: last, out of that order)."""
+0.2-0.4: after simnostate; simlong, added 2026-11-29, 0.2-0.4: after simstop; simgone,
+added then, 0.15-0.25: after simlong; simescalate and simwithdraw, added then, 0.34 and
+0.39: last, out of that order)."""
 
 COSMIC_RAY = importlib.metadata.version("cosmic-ray")
 
@@ -183,6 +184,17 @@ EQUIVALENT: dict[str, str] = {
     "once at import, on two constants (7 functions in `MIGRATIONS`, `SCHEMA_VERSION = 7`): "
     "7 <= 7 holds as 7 == 7 does, so the import goes on the same (tests that replace them "
     "do so after the import)",
+    "_supervision/children.py:347:RemoveDecorator": "the `@property` of `Level.giving_up`, "
+    "a `Protocol` stub no class inherits (`Record`, its one subclass, is a `Protocol` too; "
+    "`Node` defines its own property): nothing reads the stub (as children.py:351)",
+    "_registrar/life.py:994:ReplaceBinaryOperator_Sub_Pow": "`life.lost_everything`'s "
+    "`also` is never passed (its one runtime caller, `tree.lost_everything`, passes `name` "
+    "and `handle`; no lab code calls it): `also` is an empty set, the loop never reached",
+    "_registrar/actor.py:469:ReplaceFalseWithTrue:1": "`launch`'s cleanup of a failed "
+    "start: `open_catalog` made the `Saver` just before with nothing pending, and nothing "
+    "stages a change before the actor's own thread runs (`RegistrarActor.__init__` and its "
+    "parts only build state), so `flush()` writes nothing (the one way past: an asynchronous "
+    "KeyboardInterrupt inside `Thread.start` after the actor's thread began)",
 }
 """Survivors shown equivalent: mutant id (`FILE:LINE:OPERATOR[:N]`) -> the line that shows it."""
 

@@ -26,7 +26,7 @@ import itertools
 import reprlib
 import tomllib
 from collections import defaultdict
-from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Collection, Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -34,7 +34,15 @@ from rr_actors import events
 from rr_actors.errors import ConfigError
 from rr_actors.events.lines import json_lines, parse_json
 from rr_actors_lab.experiments import _consumer_rules, _status_rules, _supervision_rules
-from rr_actors_lab.experiments._history import Finding, Life, Line, gather, registrar_of, walk
+from rr_actors_lab.experiments._history import (
+    Finding,
+    Life,
+    Line,
+    Step,
+    gather,
+    registrar_of,
+    walk,
+)
 from rr_actors_lab.experiments._provider_rules import (
     Providers,
     dependency_held,
@@ -95,6 +103,8 @@ RULES = (
     "strategy",
     "escalation",
     "one-name",
+    "gone-told",
+    "client-stopped",
     "fetch",
     "outcome",
     "life-end",
@@ -285,6 +295,82 @@ def _one_name_rule(
     return findings
 
 
+GONE_RELEASES = ("unload", "unload unanswered", "dependency", "stop")
+"""`QueryForgotten` reasons of a consumer's own release of an id (`gone-told` judges them)."""
+
+
+def _gone_told_rule(history: Sequence[Line], steps: Sequence[Step]) -> list[Finding]:
+    """`gone-told` (rule 19): a registrar's life begun after a provider of its host was lost
+    for good (a `temporary` child's crash, no event of that name after it) is told so at
+    its start (its supervisor's death watch for those it missed): it forgets the ids it held
+    there as `provider lost`, not by releasing them. A life that forgot any as `provider
+    lost` was told: its releases before that raced the telling (a life that released every
+    one in that race cannot be told apart from one never told)."""
+    lost: dict[tuple[str, str], Line] = {}  # (host, provider) -> its exit, if its last event
+    for line, e in history:
+        if isinstance(e, events.ChildExited) and e.restart == "temporary" and not e.stopped:
+            lost[e.host, e.child] = (line, e)
+        elif (name := registrar_of(e) or getattr(e, "child", None)) is not None:
+            lost.pop((e.host, name), None)  # (served again: not gone)
+    released: dict[tuple[str, int, str, str], list[int]] = defaultdict(list)  # (life) -> lines
+    told: set[tuple[str, int, str, str]] = set()  # (registrar, life, host, provider)
+    began: dict[str, int] = {}  # registrar -> the stamp of its life now's first event
+    for name, line, event, new, life in steps:
+        if new:
+            began[name] = event.hlc
+        if not isinstance(event, events.QueryForgotten):
+            continue
+        exit_ = lost.get((event.host, event.serving_rr))
+        if exit_ is None or exit_[1].hlc >= began.get(name, 0):
+            continue
+        key = (name, life, event.host, event.serving_rr)
+        if event.reason == "provider lost":
+            told.add(key)
+        elif event.reason in GONE_RELEASES:
+            released[key].append(line)
+    return [
+        Finding(
+            "gone-told",
+            "violation",
+            f"{name} released {len(lines)} id(s) held at {provider}, lost for good before "
+            f"this life of {name} began, and forgot none as `provider lost`: it was not "
+            "told at its start (rule 19)",
+            (lost[host, provider][0], *lines),
+            (name,),
+        )
+        for (name, life, host, provider), lines in released.items()
+        if (name, life, host, provider) not in told
+    ]
+
+
+def _client_stopped_rule(
+    steps: Sequence[Step], timeouts: Mapping[str, float], managers: Collection[str]
+) -> list[Finding]:
+    """`client-stopped`: a client of the plan (a consumer of `timeouts` that is no manager,
+    started by `Supervisor.registrar`) is stopped with the tree: its last life ends in its
+    `RegistrarStopped` (the supervisor stops the registrars it started before its children)."""
+    last: dict[str, tuple[int, int]] = {}  # client -> (its last life, that life's last line)
+    stopped: set[tuple[str, int]] = set()
+    for name, line, event, _new, life in steps:
+        if name not in timeouts or name in managers:
+            continue
+        last[name] = (life, line)
+        if isinstance(event, events.RegistrarStopped):
+            stopped.add((name, life))
+    return [
+        Finding(
+            "client-stopped",
+            "violation",
+            f"{name}, a registrar its supervisor started, did not stop with the tree (no "
+            "`RegistrarStopped` in its last life)",
+            (line,),
+            (name,),
+        )
+        for name, (life, line) in sorted(last.items())
+        if (name, life) not in stopped
+    ]
+
+
 def check(
     history: Sequence[Line],
     resolve: str = "first_served",
@@ -371,6 +457,8 @@ def check(
         *damage,
         *_one_name_rule(history, lives, resolve),
         *(_undigested(history) if plain_requests else ()),
+        *_gone_told_rule(history, steps),
+        *_client_stopped_rule(steps, timeouts or {}, managers),
     ]
     findings = [
         dataclasses.replace(f, kind="unverifiable", message=f"{f.message} (events were lost)")

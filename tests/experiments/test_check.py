@@ -4325,6 +4325,34 @@ def admit_past_share(h: History) -> History | None:
     return None
 
 
+def release_lost_for_good(h: History) -> History | None:
+    """Each id a restart forgot as `provider lost`, its provider lost for good (a `temporary`
+    child's crash, its last event) before that process's first event, told as released
+    (`dependency`) instead: the restart never told (the mutant tree.py:527)."""
+    lost: dict[str, int] = {}  # provider -> the stamp of its crash, if its last event
+    for e in h:
+        if type(e) is events.ChildExited and e.restart == "temporary" and not e.stopped:
+            lost[e.child] = e.hlc
+        elif (name := getattr(e, "registrar", None) or getattr(e, "child", None)) is not None:
+            lost.pop(name, None)
+    first: dict[tuple[str, int], int] = {}  # (registrar, pid) -> the stamp of its first event
+    for e in h:
+        if (name := getattr(e, "registrar", None)) is not None:
+            first.setdefault((name, e.pid), e.hlc)
+    told = {
+        i
+        for i, e in enumerate(h)
+        if type(e) is events.QueryForgotten
+        and e.reason == "provider lost"
+        and lost.get(e.serving_rr, first[e.registrar, e.pid]) < first[e.registrar, e.pid]
+    }
+    if not told:
+        return None
+    return [
+        dataclasses.replace(e, reason="dependency") if i in told else e for i, e in enumerate(h)
+    ]
+
+
 MUTATIONS: dict[str, tuple[Callable[[History], History | None], str]] = {
     # name: (the mutation, the rule that must catch it)
     "duplicate-unload": (duplicate(events.ResourceUnloaded), "unload-once"),
@@ -4387,6 +4415,7 @@ MUTATIONS: dict[str, tuple[Callable[[History], History | None], str]] = {
     "listing-lists-an-unknown-id": (lists_an_unknown_id(events.ServerQueriesListed), "fetch"),
     "drop-outcome": (drop_outcome, "outcome"),
     "end-by-itself": (end_by_itself, "life-end"),
+    "release-lost-for-good": (release_lost_for_good, "gone-told"),
 }
 
 
@@ -4635,10 +4664,14 @@ def test_answer_early_takes_no_callback_that_returned_after_its_id_s_release_on_
     assert rule in {f.rule for f in verdict.findings if f.kind == "violation"}
 
 
-SIMULATED_SHAPES = {"release-ended-dependency-late": "simkeptdep"}
+SIMULATED_SHAPES = {
+    "release-ended-dependency-late": "simkeptdep",
+    "release-lost-for-good": "simgone",
+}
 """Mutations whose shape a short real run does not always have, each with the plan whose
 simulated seed 1 has it every time: a SIGKILL of api inside one of its 50 ms loads with
-front's call in flight (2 of 3 real `simkeptdep` runs of 2 s had none, 2026-11-28)."""
+front's call in flight (2 of 3 real `simkeptdep` runs of 2 s had none, 2026-11-28); a
+manager restarted after a provider it held ids at was lost for good (`simgone`'s timing)."""
 
 
 @pytest.mark.timeout(900)
@@ -4752,10 +4785,15 @@ def test_every_rule_but_the_events_rule_has_a_mutation() -> None:
     # on the simulation only, its planted history is test_an_id_kept_for_a_retry_that_...;
     # `damaged-backup` the backups a fault damaged, which no event shows: its planted
     # histories are test_a_damaged_backup_...; `timed-out` its consumers' timeouts too:
-    # test_a_call_withdrawn_at_a_timeout_before_its_call_timeout_...)
-    assert set(check.RULES) - {"events", "kept-unclaimed", "damaged-backup", "timed-out"} == {
-        rule for _, rule in MUTATIONS.values()
-    }
+    # test_a_call_withdrawn_at_a_timeout_before_its_call_timeout_...; `client-stopped` the
+    # plan's clients' names: test_a_client_its_tree_did_not_stop_is_a_client_stopped_...)
+    assert set(check.RULES) - {
+        "events",
+        "kept-unclaimed",
+        "damaged-backup",
+        "timed-out",
+        "client-stopped",
+    } == {rule for _, rule in MUTATIONS.values()}
 
 
 def test_check_of_a_simulations_output_points_to_its_seeds_and_replay(
@@ -4770,3 +4808,68 @@ def test_check_of_a_simulations_output_points_to_its_seeds_and_replay(
     err = capsys.readouterr().err
     assert f"no events.jsonl at {tmp_path}: it is a simulation's output; its seeds.jsonl" in err
     assert f"`rr-actors replay {tmp_path} --seed S` re-runs one" in err
+
+
+def _gone_while_down(*forgotten: str) -> list[events.Event]:
+    """sensor (a manager) killed, then feed, a `temporary` provider it held Q1 and Q2 at,
+    lost for good while sensor was down; sensor's restart restores both ids, forgets them
+    as `forgotten` says, and stops."""
+    sensor, feed = 300, 400
+    rows = ((Q1, "feed", "resource", ""), (Q2, "feed", "resource", ""))
+    return [
+        events.CatalogRestored("feed", (), (), (), pid=feed, seq=1),
+        events.CatalogRestored("sensor", (), (), rows, pid=sensor, seq=1),
+        events.ChildExited("sup", "sensor", sensor, "killed by SIGKILL", restart="permanent"),
+        events.ChildExited("sup", "feed", feed, "killed by SIGKILL", restart="temporary"),
+        events.CatalogRestored("sensor", (), (), rows, pid=sensor + 1, seq=1),
+        *(
+            events.QueryForgotten("sensor", qid, "feed", reason, pid=sensor + 1, seq=n)
+            for n, (qid, reason) in enumerate(zip((Q1, Q2), forgotten, strict=True), start=2)
+        ),
+        events.RegistrarStopped("sensor", (), (), (), pid=sensor + 1, seq=4),
+    ]
+
+
+def test_a_restart_never_told_its_provider_was_lost_for_good_is_a_gone_told_violation() -> None:
+    """The mutant tree.py:527 (`gone <= name`: feed is not told to sensor, whose name sorts
+    after it): sensor's restart releases its ids at feed as its clients let go, and is
+    never told `FATAL` (`simgone`)."""
+    found = _of_rule(_gone_while_down("dependency", "dependency"), "gone-told")
+    assert [("violation", (4, 6, 7))] == [(f.kind, f.lines) for f in found]
+
+
+@pytest.mark.parametrize(
+    "forgotten",
+    [
+        ("provider lost", "provider lost"),
+        ("dependency", "provider lost"),
+        ("in doubt", "withdrawn"),
+    ],
+)
+def test_a_restart_told_its_provider_was_lost_holds_gone_told(forgotten: tuple[str, str]) -> None:
+    """Told: both forgotten as `provider lost`, or one released before the telling arrived
+    (a race); an id settled in doubt at the restore, or withdrawn, is no release."""
+    assert [] == _of_rule(_gone_while_down(*forgotten), "gone-told")
+
+
+def test_a_release_at_a_provider_lost_after_the_life_began_is_not_judged_by_gone_told() -> None:
+    """feed lost for good while sensor's restart runs: the death watch tells it as it tells
+    every living registrar, which `gone-told` does not judge."""
+    history = _gone_while_down("dependency", "dependency")
+    exited = history.pop(3)
+    history.insert(4, dataclasses.replace(exited, hlc=history[3].hlc + 1))  # (after it began)
+    assert [] == _of_rule(history, "gone-told")
+
+
+def test_a_client_its_tree_did_not_stop_is_a_client_stopped_violation() -> None:
+    """The mutant supervisor.py:323 (`Supervisor.stop` stops none of the registrars
+    `Supervisor.registrar` started): the client's last life has no `RegistrarStopped`
+    (`simstop`); a consumer of no plan (not in `timeouts`) is not judged."""
+    h = clean()
+    assert isinstance(h[-2], events.RegistrarStopped)
+    assert "cm" == h[-2].registrar
+    unstopped = numbered([*h[:-2], h[-1]])
+    found = check.check(unstopped, timeouts={"cm": 1.0}).findings
+    assert [("client-stopped", (7,))] == [(f.rule, f.lines) for f in found]  # (its last event)
+    assert "held" == check.check(numbered(h), timeouts={"cm": 1.0}).verdict
+    assert "held" == check.check(unstopped).verdict

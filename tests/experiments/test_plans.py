@@ -52,6 +52,7 @@ SHIPPED = {
     "simanswer",
     "simbackup",
     "simstop",
+    "simgone",
     "simtimeout",
     "simlisten",
     "simwithdraw",

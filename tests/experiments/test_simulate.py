@@ -1243,6 +1243,7 @@ SIMULATED = [
     "simanswer",
     "simbackup",
     "simstop",
+    "simgone",
     "simtimeout",
     "simlisten",
     "simescalate",
