@@ -34,7 +34,15 @@ from rr_actors import events
 from rr_actors.errors import ConfigError
 from rr_actors.events.lines import json_lines, parse_json
 from rr_actors_lab.experiments import _consumer_rules, _status_rules, _supervision_rules
-from rr_actors_lab.experiments._history import Finding, Life, Line, gather, registrar_of, walk
+from rr_actors_lab.experiments._history import (
+    Finding,
+    Kind,
+    Life,
+    Line,
+    gather,
+    registrar_of,
+    walk,
+)
 from rr_actors_lab.experiments._provider_rules import (
     Providers,
     dependency_held,
@@ -99,6 +107,7 @@ RULES = (
     "outcome",
     "life-end",
     "damaged-backup",
+    "backup-readable",
     "events",
 )
 """The rules `check` checks, by name (`docs/how-to/check-a-run.md` says what each means)."""
@@ -244,6 +253,7 @@ def check(
     timeouts: Mapping[str, float] | None = None,
     damaged: Mapping[int, str] | None = None,
     *,
+    unreadable: Mapping[str, str] | None = None,
     heard_from_start: bool = True,
 ) -> Verdict:
     """Check one run's events against every rule of `RULES`.
@@ -263,6 +273,8 @@ def check(
         damaged: the backups the run's faults damaged between two lives (`corrupt_backup`):
             the pid of the manager process killed first -> how (`damaged-backup` judges
             its restarts; no event carries it).
+        unreadable: the backups the run left that `read_backup` refuses: manager -> why
+            (`backup-readable` judges them; no event carries it: simulated runs).
         heard_from_start: whether the history begins before the tree's start (`False`: its
             plan's `listen = "after_start"`, each registrar's first life heard from after its
             start, so `restore-first` does not judge that life's first event).
@@ -318,6 +330,7 @@ def check(
         *escalation,
         *_supervision_rules.life_end(history, refusals),
         *damage,
+        *_backup_readable(history, unreadable or {}, damaged=bool(damaged)),
         *_one_name_rule(history, lives, resolve),
     ]
     findings = [
@@ -334,6 +347,21 @@ def check(
     else:
         verdict = "held"
     return Verdict(verdict, len(history), tuple(findings))
+
+
+def _backup_readable(
+    history: Sequence[Line], unreadable: Mapping[str, str], *, damaged: bool
+) -> list[Finding]:
+    """`backup-readable`: every backup a run leaves is a catalog `read_backup` reads (rule
+    15); unverifiable where the run's faults damaged backups (a damage its end kept)."""
+    last = (history[-1][0],) if history else ()
+    kind: Kind = "unverifiable" if damaged else "violation"
+    return [
+        Finding(
+            "backup-readable", kind, f"the backup of {name} left by the run: {why}", last, (name,)
+        )
+        for name, why in sorted(unreadable.items())
+    ]
 
 
 # -- reading and printing ----------------------------------------------------------------------
