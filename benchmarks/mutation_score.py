@@ -180,6 +180,11 @@ EQUIVALENT: dict[str, str] = {
     "(`8 * 1024 >> 1024`): SQLite truncates a restarted WAL to the frames of its first "
     "commit (never to 0 bytes: `_has_log` alike), not to 8 MiB; the stale frames cut had "
     "another generation's salts, where `_commit_frames` stops: only disk space (as Mul_LShift:1)",
+    "_store/files.py:825:NumberReplacer:1": "a count record cut short read as -1 commits, not "
+    "0: with its -wal there whole, the salts (b'') differ, `None` as before; missing or cut "
+    "short, `(-1, why)`: a WARNING of -1 lost commits, `lost_commits` -1 (which nothing "
+    "reads) and the count file removed, the first commit writing the record the short one "
+    "would have got: only a log's text",
 }
 """Survivors shown equivalent: mutant id (`FILE:LINE:OPERATOR[:N]`) -> the line that shows it."""
 
