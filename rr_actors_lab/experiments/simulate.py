@@ -42,8 +42,10 @@ from typing import TYPE_CHECKING, Any
 import rr_actors as rr
 from rr_actors import events
 from rr_actors._core import runtime
+from rr_actors._store import read_backup
 from rr_actors._transport.resolve import RESOLVE_STRATEGIES
 from rr_actors.config import Steps
+from rr_actors.errors import CatalogCorruptError, ConfigError
 from rr_actors.events.kinds import set_host
 from rr_actors.events.lines import to_lines
 from rr_actors_lab.experiments import _backup_faults, check
@@ -320,6 +322,7 @@ def _run_seed(plan: Plan, seed: int, started: float, steps: Steps) -> SimulatedR
         ran = simulation.run(
             lambda: _world(plan, seed, folder, progress), seed=seed, preempt=PREEMPT, until=until
         )
+        unreadable = _unreadable(folder / "state")
     except Exception as exc:
         if not progress.serving or type(exc) is simulation.SimulationError:
             raise  # (the tree did not start, a client's request, the simulation itself)
@@ -343,6 +346,7 @@ def _run_seed(plan: Plan, seed: int, started: float, steps: Steps) -> SimulatedR
         backoff_s,
         timeouts,
         damaged,
+        unreadable=unreadable,
         heard_from_start=plan.listen == "before_start",
         plain_requests=check.plain_plan(
             ((c.request, c.factory) for c in plan.workload.calls),
@@ -366,6 +370,18 @@ def _run_seed(plan: Plan, seed: int, started: float, steps: Steps) -> SimulatedR
         cpu_s=time.process_time() - started,
         errors=tuple(map(unplaced, ran.errors)),
     )
+
+
+def _unreadable(state: Path) -> dict[str, str]:
+    """The backups the run left (`<manager>.db`, after its stop) that `read_backup` refuses,
+    as `rr-actors observe --state` would: manager -> why (`check`'s `backup-readable`)."""
+    found: dict[str, str] = {}
+    for file in sorted(state.glob("*.db")):  # (no state folder: none)
+        try:
+            read_backup(file, unpickle=False)
+        except (CatalogCorruptError, ConfigError) as exc:
+            found[file.stem] = str(exc)
+    return found
 
 
 def _history(

@@ -754,6 +754,24 @@ def test_a_damaged_backup_with_no_start_after_is_unverifiable() -> None:
     assert [("unverifiable", (7,))] == [(f.kind, f.lines) for f in found]
 
 
+def test_a_backup_the_run_left_unreadable_is_found() -> None:
+    """Issue 68 item 8: a page check that refused every good file (`files.py:436`,
+    `NotEq_Eq`) survived: a simulation checks no page at open, and no plan read a backup
+    after its run (`simulate` now does, as `rr-actors observe --state` would)."""
+    history = clean()
+    why = "catalog backup 'erm.db' is damaged: damaged pages: ok"
+    verdict = check.check(numbered(history), unreadable={"erm": why})
+    found = [f for f in verdict.findings if f.rule == "backup-readable"]
+    assert [("violation", (len(history),), ("erm",))] == [
+        (f.kind, f.lines, f.registrars) for f in found
+    ]
+    assert "violated" == verdict.verdict
+    assert "held" == check.check(numbered(history), unreadable={}).verdict
+    # (where the run's faults damaged a backup, its end may keep the damage: unverifiable)
+    damaged = check.check(numbered(history), damaged={P: "flip"}, unreadable={"erm": why})
+    assert ["unverifiable"] == [f.kind for f in damaged.findings if f.rule == "backup-readable"]
+
+
 def test_a_resource_restored_with_another_digest_than_it_was_loaded_with_is_found() -> None:
     """Issue 68 item 8: a backup of another digest scheme (another Python's) restored
     without its digests recomputed, the mutants of `schema.py:326`, survived: no plan gave
@@ -4786,14 +4804,18 @@ def test_every_rule_but_the_events_rule_has_a_mutation() -> None:
     # `damaged-backup` the backups a fault damaged, which no event shows: its planted
     # histories are test_a_damaged_backup_...; `timed-out` its consumers' timeouts too:
     # test_a_call_withdrawn_at_a_timeout_before_its_call_timeout_...; `client-stopped` the
-    # plan's clients' names: test_a_client_its_tree_did_not_stop_is_a_client_stopped_...)
-    assert set(check.RULES) - {
+    # plan's clients' names: test_a_client_its_tree_did_not_stop_is_a_client_stopped_...;
+    # `backup-readable` the backups a run left, which no event shows:
+    # test_a_backup_the_run_left_unreadable_...)
+    kept_out = {
         "events",
         "kept-unclaimed",
         "damaged-backup",
         "timed-out",
         "client-stopped",
-    } == {rule for _, rule in MUTATIONS.values()}
+        "backup-readable",
+    }
+    assert set(check.RULES) - kept_out == {rule for _, rule in MUTATIONS.values()}
 
 
 def test_check_of_a_simulations_output_points_to_its_seeds_and_replay(
