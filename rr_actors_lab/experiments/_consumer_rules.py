@@ -1,6 +1,6 @@
 """The consumer's side of a run (rules `answered`, `answer-released`, `record-kept`,
 `reported-lost`, `end`, `withdrawn`, `retry-ended`, `retry-kept`, `kept-unclaimed`,
-`timed-out`, `left`, `fetch`, `outcome`).
+`timed-out`, `left`, `fetch`, `outcome`, `gone-told`, `client-stopped`).
 
 ```
  steps ──► answered: each consumer's answered calls against what its providers added
@@ -16,6 +16,8 @@
  steps (+ the give-ups) ──► left: a last stop's rows no running consumer holds
  steps + holdings ──► fetch: QueriesFetched, ServerQueriesListed against what was held
  steps + lives (+ the exits) ──► outcome: each call a provider added against its caller's end
+ history's losses for good + steps ──► gone_told: a life begun after them forgets, not releases
+ steps ──► client_stopped: each client of the plan's last life ends in its RegistrarStopped
 ```
 
 Each rule's windows and what it excuses: docs/how-to/check-a-run.md.
@@ -28,7 +30,15 @@ from collections.abc import Collection, Mapping, Sequence
 
 from rr_actors import events
 from rr_actors._core import hlc
-from rr_actors_lab.experiments._history import REPORTED, Facts, Finding, Life, Line, Step
+from rr_actors_lab.experiments._history import (
+    REPORTED,
+    Facts,
+    Finding,
+    Life,
+    Line,
+    Step,
+    registrar_of,
+)
 from rr_actors_lab.experiments._provider_rules import Holding
 from rr_actors_lab.experiments._status_rules import Span
 
@@ -1019,3 +1029,79 @@ def _lives_of(lives: dict[tuple[str, int], Life]) -> dict[str, list[tuple[int, i
     for found in of.values():
         found.sort(key=lambda item: item[0])
     return of
+
+
+GONE_RELEASES = ("unload", "unload unanswered", "dependency", "stop")
+"""`QueryForgotten` reasons of a consumer's own release of an id (`gone-told` judges them)."""
+
+
+def gone_told(history: Sequence[Line], steps: Sequence[Step]) -> list[Finding]:
+    """`gone-told` (rule 19): a registrar's life begun after a provider of its host was lost
+    for good (a `temporary` child's crash, no event of that name after it) is told so at
+    its start (its supervisor's death watch for those it missed): it forgets the ids it held
+    there as `provider lost`, not by releasing them. A life that forgot any as `provider
+    lost` was told: its releases before that raced the telling (a life that released every
+    one in that race cannot be told apart from one never told)."""
+    lost: dict[tuple[str, str], Line] = {}  # (host, provider) -> its exit, if its last event
+    for line, e in history:
+        if isinstance(e, events.ChildExited) and e.restart == "temporary" and not e.stopped:
+            lost[e.host, e.child] = (line, e)
+        elif (name := registrar_of(e) or getattr(e, "child", None)) is not None:
+            lost.pop((e.host, name), None)  # (served again: not gone)
+    released: dict[tuple[str, int, str, str], list[int]] = defaultdict(list)  # (life) -> lines
+    told: set[tuple[str, int, str, str]] = set()  # (registrar, life, host, provider)
+    began: dict[str, int] = {}  # registrar -> the stamp of its life now's first event
+    for name, line, event, new, life in steps:
+        if new:
+            began[name] = event.hlc
+        if not isinstance(event, events.QueryForgotten):
+            continue
+        exit_ = lost.get((event.host, event.serving_rr))
+        if exit_ is None or exit_[1].hlc >= began.get(name, 0):
+            continue
+        key = (name, life, event.host, event.serving_rr)
+        if event.reason == "provider lost":
+            told.add(key)
+        elif event.reason in GONE_RELEASES:
+            released[key].append(line)
+    return [
+        Finding(
+            "gone-told",
+            "violation",
+            f"{name} released {len(lines)} id(s) held at {provider}, lost for good before "
+            f"this life of {name} began, and forgot none as `provider lost`: it was not "
+            "told at its start (rule 19)",
+            (lost[host, provider][0], *lines),
+            (name,),
+        )
+        for (name, life, host, provider), lines in released.items()
+        if (name, life, host, provider) not in told
+    ]
+
+
+def client_stopped(
+    steps: Sequence[Step], timeouts: Mapping[str, float], managers: Collection[str]
+) -> list[Finding]:
+    """`client-stopped`: a client of the plan (a consumer of `timeouts` that is no manager,
+    started by `Supervisor.registrar`) is stopped with the tree: its last life ends in its
+    `RegistrarStopped` (the supervisor stops the registrars it started before its children)."""
+    last: dict[str, tuple[int, int]] = {}  # client -> (its last life, that life's last line)
+    stopped: set[tuple[str, int]] = set()
+    for name, line, event, _new, life in steps:
+        if name not in timeouts or name in managers:
+            continue
+        last[name] = (life, line)
+        if isinstance(event, events.RegistrarStopped):
+            stopped.add((name, life))
+    return [
+        Finding(
+            "client-stopped",
+            "violation",
+            f"{name}, a registrar its supervisor started, did not stop with the tree (no "
+            "`RegistrarStopped` in its last life)",
+            (line,),
+            (name,),
+        )
+        for name, (life, line) in sorted(last.items())
+        if (name, life) not in stopped
+    ]

@@ -15,6 +15,7 @@
  steps ──► overload_paced: each server's ServerOverloaded at its bound, a second apart a life
  steps ──► share_needed: each ShareRefused past the consumer's share, or behind others waiting
  steps ──► share_kept: each ShareAdmitted under the consumer's share, a slot left for those ahead
+ history ──► undigested: each load of a run of plain requests carries its digest (`dedup`)
 ```
 
 Every lookup is a dict's: a run of a million events is checked in one linear pass.
@@ -994,3 +995,21 @@ def share_kept(steps: list[Step]) -> list[Finding]:
             )
         )
     return findings
+
+
+def undigested(history: Sequence[Line]) -> list[Finding]:
+    """`dedup` (rule 1), in a run whose requests are all plain values: each load carries its
+    request's digest (`ResourceLoaded.digest`, `None` only for a value that is not plain):
+    without one, no equal request finds the stored resource by its digest."""
+    return [
+        Finding(
+            "dedup",
+            "violation",
+            f"{e.registrar}/{e.server}: resource {e.resource_id[:8]} loaded without the "
+            "digest of its request, a plain value (rule 1: an equal one finds it by digest)",
+            (line,),
+            (e.registrar,),
+        )
+        for line, e in history
+        if isinstance(e, events.ResourceLoaded) and e.digest is None
+    ]

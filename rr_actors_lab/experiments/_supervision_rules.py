@@ -1,5 +1,5 @@
 """The supervisors' side of a run (rules `intensity`, `strategy`, `escalation`, `life-end`,
-`damaged-backup`).
+`damaged-backup`, `backup-readable`).
 
 ```
  ChildExited (counted) + SupervisorGaveUp ──► per supervisor ──► OTP's intensity: more
@@ -14,6 +14,7 @@
    `CatalogCorruptError` (a deleted one: none), then one that restores nothing
    ──► `damaged-backup`; the refusals excused from `life-end`, the restore's lost ids
    judged by `kept` as a lost backup's
+ the backups `read_backup` refused at the run's end ──► `backup-readable`
 ```
 
 A supervisor's events come from its own thread in the order it decided: a group's stops
@@ -30,7 +31,7 @@ from collections.abc import Mapping, Sequence
 
 from rr_actors import events
 from rr_actors_lab.experiments._backup_faults import CORRUPT, REFUSED
-from rr_actors_lab.experiments._history import Finding, Line
+from rr_actors_lab.experiments._history import Finding, Kind, Line
 
 __all__ = [
     "DUE_S",
@@ -620,3 +621,18 @@ def strategy(history: Sequence[Line], due_s: float = DUE_S) -> tuple[list[Findin
         [f for f in judge.findings if f.rule == "strategy"],
         [f for f in judge.findings if f.rule == "escalation"],
     )
+
+
+def backup_readable(
+    history: Sequence[Line], unreadable: Mapping[str, str], *, damaged: bool
+) -> list[Finding]:
+    """`backup-readable`: every backup a run leaves is a catalog `read_backup` reads (rule
+    15); unverifiable where the run's faults damaged backups (a damage its end kept)."""
+    last = (history[-1][0],) if history else ()
+    kind: Kind = "unverifiable" if damaged else "violation"
+    return [
+        Finding(
+            "backup-readable", kind, f"the backup of {name} left by the run: {why}", last, (name,)
+        )
+        for name, why in sorted(unreadable.items())
+    ]

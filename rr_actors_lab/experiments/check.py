@@ -26,7 +26,7 @@ import itertools
 import reprlib
 import tomllib
 from collections import defaultdict
-from collections.abc import Callable, Collection, Iterable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -36,10 +36,8 @@ from rr_actors.events.lines import json_lines, parse_json
 from rr_actors_lab.experiments import _consumer_rules, _status_rules, _supervision_rules
 from rr_actors_lab.experiments._history import (
     Finding,
-    Kind,
     Life,
     Line,
-    Step,
     gather,
     registrar_of,
     walk,
@@ -52,6 +50,7 @@ from rr_actors_lab.experiments._provider_rules import (
     share_kept,
     share_needed,
     shed_needed,
+    undigested,
     unload_order,
 )
 
@@ -196,24 +195,6 @@ KEEPS = {
 """What each named rule 22 policy (`[hosts]`' `resolve`) keeps, as `one-name` words it."""
 
 
-def _undigested(history: Sequence[Line]) -> list[Finding]:
-    """`dedup` (rule 1), in a run whose requests are all plain values: each load carries its
-    request's digest (`ResourceLoaded.digest`, `None` only for a value that is not plain):
-    without one, no equal request finds the stored resource by its digest."""
-    return [
-        Finding(
-            "dedup",
-            "violation",
-            f"{e.registrar}/{e.server}: resource {e.resource_id[:8]} loaded without the "
-            "digest of its request, a plain value (rule 1: an equal one finds it by digest)",
-            (line,),
-            (e.registrar,),
-        )
-        for line, e in history
-        if isinstance(e, events.ResourceLoaded) and e.digest is None
-    ]
-
-
 SERVICE = "rr_actors_lab.experiments.services:service"
 """The setup whose loads send on only requests a plan names (`uses_request`) or their own."""
 PLAIN_FACTORIES = frozenset({"rr_actors_lab.experiments.services:long_request"})
@@ -295,82 +276,6 @@ def _one_name_rule(
             )
         )
     return findings
-
-
-GONE_RELEASES = ("unload", "unload unanswered", "dependency", "stop")
-"""`QueryForgotten` reasons of a consumer's own release of an id (`gone-told` judges them)."""
-
-
-def _gone_told_rule(history: Sequence[Line], steps: Sequence[Step]) -> list[Finding]:
-    """`gone-told` (rule 19): a registrar's life begun after a provider of its host was lost
-    for good (a `temporary` child's crash, no event of that name after it) is told so at
-    its start (its supervisor's death watch for those it missed): it forgets the ids it held
-    there as `provider lost`, not by releasing them. A life that forgot any as `provider
-    lost` was told: its releases before that raced the telling (a life that released every
-    one in that race cannot be told apart from one never told)."""
-    lost: dict[tuple[str, str], Line] = {}  # (host, provider) -> its exit, if its last event
-    for line, e in history:
-        if isinstance(e, events.ChildExited) and e.restart == "temporary" and not e.stopped:
-            lost[e.host, e.child] = (line, e)
-        elif (name := registrar_of(e) or getattr(e, "child", None)) is not None:
-            lost.pop((e.host, name), None)  # (served again: not gone)
-    released: dict[tuple[str, int, str, str], list[int]] = defaultdict(list)  # (life) -> lines
-    told: set[tuple[str, int, str, str]] = set()  # (registrar, life, host, provider)
-    began: dict[str, int] = {}  # registrar -> the stamp of its life now's first event
-    for name, line, event, new, life in steps:
-        if new:
-            began[name] = event.hlc
-        if not isinstance(event, events.QueryForgotten):
-            continue
-        exit_ = lost.get((event.host, event.serving_rr))
-        if exit_ is None or exit_[1].hlc >= began.get(name, 0):
-            continue
-        key = (name, life, event.host, event.serving_rr)
-        if event.reason == "provider lost":
-            told.add(key)
-        elif event.reason in GONE_RELEASES:
-            released[key].append(line)
-    return [
-        Finding(
-            "gone-told",
-            "violation",
-            f"{name} released {len(lines)} id(s) held at {provider}, lost for good before "
-            f"this life of {name} began, and forgot none as `provider lost`: it was not "
-            "told at its start (rule 19)",
-            (lost[host, provider][0], *lines),
-            (name,),
-        )
-        for (name, life, host, provider), lines in released.items()
-        if (name, life, host, provider) not in told
-    ]
-
-
-def _client_stopped_rule(
-    steps: Sequence[Step], timeouts: Mapping[str, float], managers: Collection[str]
-) -> list[Finding]:
-    """`client-stopped`: a client of the plan (a consumer of `timeouts` that is no manager,
-    started by `Supervisor.registrar`) is stopped with the tree: its last life ends in its
-    `RegistrarStopped` (the supervisor stops the registrars it started before its children)."""
-    last: dict[str, tuple[int, int]] = {}  # client -> (its last life, that life's last line)
-    stopped: set[tuple[str, int]] = set()
-    for name, line, event, _new, life in steps:
-        if name not in timeouts or name in managers:
-            continue
-        last[name] = (life, line)
-        if isinstance(event, events.RegistrarStopped):
-            stopped.add((name, life))
-    return [
-        Finding(
-            "client-stopped",
-            "violation",
-            f"{name}, a registrar its supervisor started, did not stop with the tree (no "
-            "`RegistrarStopped` in its last life)",
-            (line,),
-            (name,),
-        )
-        for name, (life, line) in sorted(last.items())
-        if (name, life) not in stopped
-    ]
 
 
 def check(
@@ -460,11 +365,11 @@ def check(
         *escalation,
         *_supervision_rules.life_end(history, refusals),
         *damage,
-        *_backup_readable(history, unreadable or {}, damaged=bool(damaged)),
+        *_supervision_rules.backup_readable(history, unreadable or {}, damaged=bool(damaged)),
         *_one_name_rule(history, lives, resolve),
-        *(_undigested(history) if plain_requests else ()),
-        *_gone_told_rule(history, steps),
-        *_client_stopped_rule(steps, timeouts or {}, managers),
+        *(undigested(history) if plain_requests else ()),
+        *_consumer_rules.gone_told(history, steps),
+        *_consumer_rules.client_stopped(steps, timeouts or {}, managers),
     ]
     findings = [
         dataclasses.replace(f, kind="unverifiable", message=f"{f.message} (events were lost)")
@@ -480,21 +385,6 @@ def check(
     else:
         verdict = "held"
     return Verdict(verdict, len(history), tuple(findings))
-
-
-def _backup_readable(
-    history: Sequence[Line], unreadable: Mapping[str, str], *, damaged: bool
-) -> list[Finding]:
-    """`backup-readable`: every backup a run leaves is a catalog `read_backup` reads (rule
-    15); unverifiable where the run's faults damaged backups (a damage its end kept)."""
-    last = (history[-1][0],) if history else ()
-    kind: Kind = "unverifiable" if damaged else "violation"
-    return [
-        Finding(
-            "backup-readable", kind, f"the backup of {name} left by the run: {why}", last, (name,)
-        )
-        for name, why in sorted(unreadable.items())
-    ]
 
 
 # -- reading and printing ----------------------------------------------------------------------
