@@ -4522,8 +4522,11 @@ def _known_gap(plan: str, finding: check.Finding) -> bool:
     ids of the worker when the root's give-up stopped it, the worker lost for good in the
     pool's give-up just before (`end`, widened on 2026-11-28 to consumers lost for good).
     The root's give-up tells db the pool's managers are lost before db's `Stop`
-    (`Ending.lost`), yet db released nothing. No simulated seed reaches it (1-200, the root
-    at 0 restarts): not yet traced, so not yet fixed. Every other finding still fails."""
+    (`Ending.lost`), yet db released nothing. A likely cause (read, not traced): db's
+    `Life.lose` defers the release while the worker's name is still in its process's
+    directory (rule 22's namesake check), asking it for a `Reconcile`, and its `Stop` comes
+    first. No simulated seed reaches it (1-200, the root at 0 restarts). Every other finding
+    still fails."""
     return plan == "crashloop" and finding.rule == "end" and "lost for good" in finding.message
 
 
